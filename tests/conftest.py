@@ -1,0 +1,26 @@
+"""Shared fixtures: where the real research data lives (read in place, never copied)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = REPO.parent / "shared" / "data"
+VOD_ROOT = SHARED_DATA / "vod_example"
+ASTYX_ROOT = SHARED_DATA / "astyx_hires2019"
+
+
+@pytest.fixture(scope="session")
+def vod_root() -> Path:
+    if not VOD_ROOT.is_dir():
+        pytest.skip(f"real VoD example data not found at {VOD_ROOT}")
+    return VOD_ROOT
+
+
+@pytest.fixture(scope="session")
+def astyx_root() -> Path:
+    if not ASTYX_ROOT.is_dir():
+        pytest.skip(f"real Astyx data not found at {ASTYX_ROOT}")
+    return ASTYX_ROOT

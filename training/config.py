@@ -1,0 +1,108 @@
+"""Model and training configs: frozen dataclasses, one comment per field; presets by name.
+
+The manifest written at export is ``dataclasses.asdict(ModelConfig)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+from msdnet.runtime.ddim import DiffusionConfig
+from msdnet.runtime.grid import GRID_PRESETS, GridConfig
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Loss weights (MSDNet Sec. IV-B)."""
+
+    rho: float = 1.0  # occupancy weight per scale, Eq. 7
+    zeta: float = 10.0  # offset weight per scale, Eq. 7
+    alpha: float = 10.0  # non-empty BEV cells, Eq. 8 and 14
+    gamma: float = 20.0  # empty BEV cells, Eq. 8 and 14
+    lambdas: tuple[float, float, float, float] = (1.0, 0.01, 5.0, 10.0)  # Eq. 15: recon, rec-distill, diff-distill, diff
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Everything that fixes the architecture; weights are meaningless without it."""
+
+    preset: str  # name of the preset this came from
+    grid: GridConfig  # voxel grid (radar frame)
+    radar_columns: tuple[str, ...] = ("x", "y", "z", "rcs", "v_r_compensated")  # radar point columns fed to the VFE
+    lidar_columns: tuple[str, ...] = ("x", "y", "z")  # LiDAR point columns fed to the teacher's VFE
+    max_voxels_radar: int = 4096  # voxel cap for radar clouds
+    max_voxels_lidar: int = 60000  # voxel cap for LiDAR clouds
+    vfe_channels: int = 16  # per-voxel MLP width
+    encoder_channels: tuple[int, int, int, int] = (16, 32, 64, 64)  # sparse backbone width at 1, 1/2, 1/4, 1/8
+    bev_channels: int = 64  # C of every BEV map: F^S, F^R, F^D (1, C, H/8, W/8)
+    s2d_channels: int = 64  # teacher feature-enhancement width
+    rgfd_channels: int = 64  # RGFD width after the first Down block (doubles after the second)
+    adapter_hidden: int = 64  # noise-adapter bottleneck / MLP width
+    denoiser_hidden: int = 32  # light denoiser bottleneck width (1x1 -> 3x3 -> 1x1)
+    time_embed_dim: int = 64  # sinusoidal time embedding width
+    head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
+    r2ldm_channels: tuple[int, ...] = (64, 128, 256)  # R2LDM U-Net widths per level
+    diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)  # schedule, m, T_m
+    train_sample_steps: int = 5  # DDIM steps in the student's training loop (gradients flow through)
+    r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise
+    threshold: float = 0.5  # occupancy threshold for decoding points
+    losses: LossWeights = field(default_factory=LossWeights)  # loss weights
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (papers: Adam, lr 1e-3, OneCycleLR, batch 4)."""
+
+    epochs_teacher: int = 60  # teacher epochs
+    epochs_student: int = 90  # student / R2LDM epochs
+    batch_size: int = 4  # frames per step (per process under torchrun)
+    lr: float = 1e-3  # peak learning rate of OneCycleLR
+    weight_decay: float = 0.0  # Adam weight decay
+    grad_clip: float = 10.0  # max gradient norm
+    num_workers: int = 0  # DataLoader workers
+    seed: int = 0  # seed for weights, shuffling and noise
+
+
+def _preset(name: str, **kw: object) -> ModelConfig:
+    return replace(ModelConfig(preset=name, grid=GRID_PRESETS[name]), **kw)  # type: ignore[arg-type]
+
+
+MODEL_PRESETS: dict[str, ModelConfig] = {
+    "tiny": _preset(
+        "tiny",
+        max_voxels_radar=1024,
+        max_voxels_lidar=8192,
+        vfe_channels=8,
+        encoder_channels=(8, 16, 16, 16),
+        bev_channels=16,
+        s2d_channels=16,
+        rgfd_channels=16,
+        adapter_hidden=16,
+        denoiser_hidden=8,
+        time_embed_dim=16,
+        head_channels=(8, 8, 4),
+        r2ldm_channels=(16, 32),
+        train_sample_steps=2,
+        r2ldm_sample_steps=8,
+    ),
+    "lite": _preset("lite", max_voxels_lidar=40000),
+    "paper": _preset(
+        "paper",
+        max_voxels_lidar=120000,
+        encoder_channels=(16, 32, 64, 128),
+        bev_channels=128,
+        s2d_channels=128,
+        rgfd_channels=128,
+        adapter_hidden=128,
+        denoiser_hidden=64,
+        time_embed_dim=128,
+        head_channels=(64, 32, 16),
+        r2ldm_channels=(128, 256, 512),
+    ),
+}
+
+TRAIN_PRESETS: dict[str, TrainConfig] = {
+    "tiny": TrainConfig(epochs_teacher=2, epochs_student=2, batch_size=2),
+    "lite": TrainConfig(epochs_teacher=12, epochs_student=12),
+    "paper": TrainConfig(),
+}
