@@ -19,7 +19,8 @@ class LossWeights:
     zeta: float = 10.0  # offset weight per scale, Eq. 7
     alpha: float = 10.0  # non-empty BEV cells, Eq. 8 and 14
     gamma: float = 20.0  # empty BEV cells, Eq. 8 and 14
-    lambdas: tuple[float, float, float, float] = (1.0, 0.01, 5.0, 10.0)  # Eq. 15: recon, rec-distill, diff-distill, diff
+    # Eq. 15 weights of: recon, reconstruction distillation, diffusion distillation, diffusion
+    lambdas: tuple[float, float, float, float] = (1.0, 0.01, 5.0, 10.0)
 
 
 @dataclass(frozen=True)
@@ -28,12 +29,13 @@ class ModelConfig:
 
     preset: str  # name of the preset this came from
     grid: GridConfig  # voxel grid (radar frame)
-    radar_columns: tuple[str, ...] = ("x", "y", "z", "rcs", "v_r_compensated")  # radar point columns fed to the VFE
+    # radar point columns fed to the VFE, in order
+    radar_columns: tuple[str, ...] = ("x", "y", "z", "rcs", "v_r_compensated")
     lidar_columns: tuple[str, ...] = ("x", "y", "z")  # LiDAR point columns fed to the teacher's VFE
     max_voxels_radar: int = 4096  # voxel cap for radar clouds
     max_voxels_lidar: int = 60000  # voxel cap for LiDAR clouds
     vfe_channels: int = 16  # per-voxel MLP width
-    encoder_channels: tuple[int, int, int, int] = (16, 32, 64, 64)  # sparse backbone width at 1, 1/2, 1/4, 1/8
+    encoder_channels: tuple[int, int, int, int] = (16, 32, 64, 64)  # backbone width at 1, 1/2, 1/4, 1/8
     bev_channels: int = 64  # C of every BEV map: F^S, F^R, F^D (1, C, H/8, W/8)
     s2d_channels: int = 64  # teacher feature-enhancement width
     rgfd_channels: int = 64  # RGFD width after the first Down block (doubles after the second)
@@ -43,7 +45,7 @@ class ModelConfig:
     head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
     r2ldm_channels: tuple[int, ...] = (64, 128, 256)  # R2LDM U-Net widths per level
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)  # schedule, m, T_m
-    train_sample_steps: int = 5  # DDIM steps in the student's training loop (gradients flow through)
+    train_sample_steps: int = 5  # DDIM steps of the student's training loop (with grads)
     r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise
     threshold: float = 0.5  # occupancy threshold for decoding points
     losses: LossWeights = field(default_factory=LossWeights)  # loss weights

@@ -1,0 +1,57 @@
+"""ONNX graph contracts: file names, input/output names and dynamic axes, declared once.
+
+Both the exporter (``msdnet.export``) and the runtime (``msdnet.runtime.pipeline``) import this
+module; it must stay torch-free. Shapes use ``V_l`` for the voxel count at encoder level ``l``
+(level 0 = input voxels, each down layer halves the grid) and ``C`` for ``bev_channels``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+FORMAT_VERSION = 1  # bump when the artifact layout or any contract below changes
+OPSET = 19  # ONNX opset of every graph (DeformConv needs >= 19)
+NUM_DOWN = 3  # stride-2 layers in the sparse encoder: the BEV map is at 1/8 of the grid
+KERNEL_TAPS = 27  # 3 x 3 x 3 sparse kernel
+
+
+@dataclass(frozen=True)
+class GraphSpec:
+    """One ONNX graph of an artifact folder."""
+
+    file: str  # file name inside the artifact folder
+    inputs: tuple[str, ...]  # input names, in the order the torch module's forward takes them
+    outputs: tuple[str, ...]  # output names, in order
+    dynamic_axes: dict[str, dict[int, str]]  # per input/output: axis -> symbolic name
+
+
+def _encoder_spec() -> GraphSpec:
+    inputs = ["voxel_features", "subm_rules_0"]  # (V_0, F) float32 ; (V_0, 27) int64
+    axes: dict[str, dict[int, str]] = {"voxel_features": {0: "V_0"}, "subm_rules_0": {0: "V_0"}}
+    for level in range(1, NUM_DOWN + 1):
+        for kind in ("down", "subm"):
+            name = f"{kind}_rules_{level}"  # (V_level, 27) int64, rows index level-1 / level
+            inputs.append(name)
+            axes[name] = {0: f"V_{level}"}
+    inputs.append("bev_coords")  # (V_3, 4) int64 [b, z, y, x] of the last level, for the scatter
+    axes["bev_coords"] = {0: f"V_{NUM_DOWN}"}
+    return GraphSpec("encoder.onnx", tuple(inputs), ("bev_features",), axes)
+
+
+ENCODER = _encoder_spec()  # voxels + rulebooks -> F^S (1, C, H, W)
+RGFD_ADAPTER = GraphSpec(  # F_r^S, eps (1, C, H, W) -> x_m (1, C, H, W), Eq. 12
+    "rgfd_adapter.onnx", ("bev_features", "noise"), ("x_start",), {}
+)
+DENOISER_STEP = GraphSpec(  # one DDIM step: x_t (1, C, H, W), t/abar_t/abar_prev (1,) -> x_prev
+    "denoiser_step.onnx", ("x_t", "t", "abar_t", "abar_prev"), ("x_prev",), {}
+)
+RECON_HEAD = GraphSpec(  # F^D (1, C, H, W) -> occupancy (1, 1, D, H', W'), offsets (1, 3, D, H', W')
+    "recon_head.onnx", ("features",), ("occupancy", "offsets"), {}
+)
+MSDNET_GRAPHS = (ENCODER, RGFD_ADAPTER, DENOISER_STEP, RECON_HEAD)
+
+# R2LDM baseline: same encoder and head contracts; its step takes the radar latent as condition.
+R2LDM_STEP = GraphSpec(  # x_t, cond (1, C, H, W), t/abar_t/abar_prev (1,) -> x_prev
+    "r2ldm_step.onnx", ("x_t", "cond", "t", "abar_t", "abar_prev"), ("x_prev",), {}
+)
+R2LDM_GRAPHS = (ENCODER, R2LDM_STEP, RECON_HEAD)
