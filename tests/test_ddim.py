@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from msdnet.runtime import ddim
 
 CFG = ddim.DiffusionConfig()

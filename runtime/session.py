@@ -1,0 +1,85 @@
+"""onnxruntime sessions: execution providers by short name, intra-op threads, no spinning.
+
+onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve the numba
+voxelizer between graph calls, so spinning is always off (``session.intra_op.allow_spinning``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import onnxruntime as ort
+
+from msdnet.runtime.errors import MsdnetError
+
+# short name -> onnxruntime execution provider
+PROVIDERS: dict[str, str] = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+}
+
+
+def available_providers() -> list[str]:
+    """Short names of the providers this onnxruntime build offers (``cpu`` always)."""
+    have = set(ort.get_available_providers())
+    return [name for name, full in PROVIDERS.items() if full in have]
+
+
+def resolve_providers(provider: str) -> list[str]:
+    """Short provider name -> onnxruntime provider list, with CPU as the fallback for ops.
+
+    Raises :class:`MsdnetError` naming the available providers when ``provider`` is unknown
+    or not built into the installed onnxruntime.
+    """
+    name = provider.strip().lower()
+    have = available_providers()
+    if name not in PROVIDERS or name not in have:
+        raise MsdnetError(
+            "provider",
+            f"{provider!r} is not available in onnxruntime {ort.__version__} "
+            f"(available: {', '.join(have)})",
+        )
+    chain = [PROVIDERS[name]]
+    if name == "tensorrt" and "cuda" in have:
+        chain.append(PROVIDERS["cuda"])
+    if name != "cpu":
+        chain.append(PROVIDERS["cpu"])
+    return chain
+
+
+def device_of(provider: str) -> str:
+    """OrtValue device type for buffers that live next to ``provider``'s kernels."""
+    return "cpu" if provider.strip().lower() == "cpu" else "cuda"
+
+
+def session_options(threads: int | None = None) -> ort.SessionOptions:
+    """Options shared by every graph: ``threads`` intra-op threads (None: ORT default), no spin."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.inter_op_num_threads = 1
+    if threads is not None:
+        if threads < 1:
+            raise MsdnetError("threads", f"must be >= 1, got {threads}")
+        opts.intra_op_num_threads = int(threads)
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    opts.log_severity_level = 3  # errors only
+    return opts
+
+
+def create_session(
+    model: bytes, name: str | Path, provider: str = "cpu", threads: int | None = None
+) -> ort.InferenceSession:
+    """An inference session from serialized ONNX ``model`` bytes (already hash-checked).
+
+    Sessions are built from bytes so the file checked is exactly the file run. ``name`` is only
+    used in error messages.
+    """
+    providers = resolve_providers(provider)
+    try:
+        return ort.InferenceSession(model, sess_options=session_options(threads), providers=providers)
+    except Exception as err:  # onnxruntime raises its own exception types
+        cause = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise MsdnetError(name, f"onnxruntime cannot load this graph: {cause}") from err
