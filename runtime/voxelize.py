@@ -5,16 +5,21 @@ Rules (the numpy reference in ``msdnet.benchmarks.numpy_reference`` follows them
 1. A row is kept when every column is finite and ``lo <= p < hi`` on x, y and z (half-open,
    compared in float64 against the grid's ``point_range``). Dropped rows are counted in
    ``Voxels.dropped_out_of_range`` (non-finite rows included).
-2. Voxel index per axis: ``floor((float64(p) - lo) / voxel_size)``, clipped to ``n - 1`` (a
-   point a hair below ``hi`` may round up to ``n``). Linear index ``((z * H) + y) * W + x``.
-3. Features: the mean of EVERY input column over the voxel's points, summed in float64 in input
-   order, divided by the count, then cast to float32.
+2. Voxel index per axis: ``floor((float64(p) - lo) * (1 / voxel_size))`` in float64 (a multiply,
+   not a divide: 3x cheaper here, and it differs from the divide only within 1 ulp of a voxel
+   face), clipped to ``n - 1`` (a point a hair below ``hi`` may round up to ``n``). Linear index
+   ``((z * H) + y) * W + x``.
+3. Features: the mean of EVERY input column over the voxel's points: summed in float64 in input
+   order, times ``1 / count`` (float64), then cast to float32.
 4. Order: voxels ascending by linear index. Cap: with more than ``max_voxels`` occupied, keep the
    ``max_voxels`` with the most points (ties -> lower linear index), still in linear order; the
    points of the dropped voxels are counted in ``Voxels.dropped_over_cap``.
 
-The kernel is O(N): voxel keys are grouped with a stable LSD radix sort (11-bit digits, two
-passes for the paper grid's 4.1M cells), so there is no dense grid and no comparison sort.
+The kernel is O(N): each kept row is packed as ``(iz | iy | ix bit fields) << row_bits | row``
+(same order as the linear index, decoded with shifts) and grouped with a stable LSD radix sort
+on the voxel bits (two 12-bit passes for the paper grid's 4.1M
+cells), so there is no dense grid and no comparison sort; one sequential pass over the
+sorted runs then sums the features.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from numba import njit
 
 from msdnet.runtime.grid import GridConfig
 
-RADIX_BITS = 11  # bits per LSD radix pass: 2048 buckets keep the histogram in L1
+RADIX_BITS = 12  # most bits per LSD radix pass: a 4096-bucket int32 histogram stays in L1
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,41 +47,60 @@ class Voxels:
 
 
 @njit(cache=True)
-def radix_sort_keys(keys: np.ndarray, max_key: int) -> tuple[np.ndarray, np.ndarray]:
-    """Stable LSD radix sort of non-negative int64 keys.
+def radix_sort(values: np.ndarray, shift0: int, nbits: int) -> np.ndarray:
+    """Stable LSD radix sort of non-negative int64 values by their bits ``shift0 .. shift0+nbits``.
 
-    keys: (N,) int64 in ``0..max_key``. Returns ``(sorted_keys (N,) int64, perm (N,) int64)``
-    with ``sorted_keys == keys[perm]``; equal keys keep their input order.
+    values: (N,) int64 >= 0, N < 2**31. Returns a new sorted (N,) int64 array; values with equal
+    sort bits keep their input order (so packing ``key << b | row`` sorts by key, then by row).
+    Digits of at most RADIX_BITS bits, balanced across passes (24 bits -> 2 x 12).
     """
-    n = keys.size
-    src_k = keys.copy()
-    src_p = np.arange(n)
-    if n < 2:
-        return src_k, src_p
-    bits = 0
-    while (max_key >> bits) > 0:
-        bits += 1
-    dst_k = np.empty(n, np.int64)
-    dst_p = np.empty(n, np.int64)
-    shift = 0
-    while shift < bits:
-        nb = min(RADIX_BITS, bits - shift)
-        mask = (1 << nb) - 1
-        hist = np.zeros((1 << nb) + 1, np.int64)
+    n = values.size
+    src = values.copy()
+    if n < 2 or nbits <= 0:
+        return src
+    n_pass = (nbits + RADIX_BITS - 1) // RADIX_BITS
+    digit = (nbits + n_pass - 1) // n_pass
+    mask = (1 << digit) - 1
+    hist = np.empty(1 << digit, np.int32)
+    dst = np.empty(n, np.int64)
+    for p in range(n_pass):
+        shift = shift0 + p * digit
+        hist[:] = 0
         for i in range(n):
-            hist[((src_k[i] >> shift) & mask) + 1] += 1
-        for d in range(1 << nb):
-            hist[d + 1] += hist[d]
+            hist[(src[i] >> shift) & mask] += 1
+        total = 0
+        for d in range(1 << digit):
+            cnt = hist[d]
+            hist[d] = total
+            total += cnt
         for i in range(n):
-            d = (src_k[i] >> shift) & mask
+            x = src[i]
+            d = (x >> shift) & mask
             pos = hist[d]
-            dst_k[pos] = src_k[i]
-            dst_p[pos] = src_p[i]
+            dst[pos] = x
             hist[d] = pos + 1
-        src_k, dst_k = dst_k, src_k
-        src_p, dst_p = dst_p, src_p
-        shift += nb
-    return src_k, src_p
+        src, dst = dst, src
+    return src
+
+
+@njit(cache=True)
+def bit_length(value: int) -> int:
+    """Bits needed to write a non-negative int (0 -> 0)."""
+    bits = 0
+    while (value >> bits) > 0:
+        bits += 1
+    return bits
+
+
+@njit(cache=True)
+def _has_nonfinite(points: np.ndarray) -> bool:
+    """points (N, C) float32 C-contiguous: True if any value is NaN or +-inf (exponent all ones).
+    Integer OR-reduction over the raw bits, so LLVM vectorizes it."""
+    bits = points.reshape(points.size).view(np.uint32)
+    acc = np.uint32(0)
+    for k in range(bits.size):
+        acc |= np.uint32((bits[k] & np.uint32(0x7F800000)) == np.uint32(0x7F800000))
+    return acc != 0
 
 
 @njit(cache=True)
@@ -84,70 +108,84 @@ def _voxelize_kernel(
     points: np.ndarray,
     lo: np.ndarray,
     hi: np.ndarray,
-    size: np.ndarray,
+    inv_size: np.ndarray,
     shape_xyz: np.ndarray,
     max_voxels: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int]:
     """points (N, C) float32 -> (coords (V,3) int32, counts (V,) int32, features (V,C) float32,
-    dropped_out_of_range, dropped_over_cap). lo/hi/size: (3,) float64 [x, y, z];
+    dropped_out_of_range, dropped_over_cap). lo/hi/inv_size: (3,) float64 [x, y, z];
     shape_xyz: (3,) int64 voxels along x, y, z."""
     n, c = points.shape
     nx, ny, nz = shape_xyz[0], shape_xyz[1], shape_xyz[2]
-    keys = np.empty(n, np.int64)
-    rows = np.empty(n, np.int64)
+    lx, ly, lz = lo[0], lo[1], lo[2]
+    hx, hy, hz = hi[0], hi[1], hi[2]
+    sx, sy, sz = inv_size[0], inv_size[1], inv_size[2]
+    fnx, fny, fnz = np.float64(nx - 1), np.float64(ny - 1), np.float64(nz - 1)
+    # Sort key: bit fields (iz | iy | ix), ordered exactly like ((z * H) + y) * W + x, but
+    # decoded with shifts; the low row_bits hold the row, so equal voxels keep input order.
+    bx = bit_length(nx - 1)
+    by = bit_length(ny - 1)
+    bz = bit_length(nz - 1)
+    row_bits = bit_length(n)
+    row_mask = (np.int64(1) << row_bits) - 1
+    check_rest = c > 3 and _has_nonfinite(points)
+
+    # Pass 1 (branch-free): packed key of every kept row, in row order.
+    packed = np.empty(n, np.int64)
     m = 0
     for i in range(n):
-        ok = True
-        for j in range(c):
-            if not math.isfinite(points[i, j]):
-                ok = False
-                break
-        if not ok:
-            continue
         x = np.float64(points[i, 0])
         y = np.float64(points[i, 1])
         z = np.float64(points[i, 2])
-        if not (lo[0] <= x < hi[0] and lo[1] <= y < hi[1] and lo[2] <= z < hi[2]):
-            continue
-        ix = min(np.int64(math.floor((x - lo[0]) / size[0])), nx - 1)
-        iy = min(np.int64(math.floor((y - lo[1]) / size[1])), ny - 1)
-        iz = min(np.int64(math.floor((z - lo[2]) / size[2])), nz - 1)
-        keys[m] = (iz * ny + iy) * nx + ix
-        rows[m] = i
-        m += 1
+        ok = (lx <= x) & (x < hx) & (ly <= y) & (y < hy) & (lz <= z) & (z < hz)
+        if check_rest:
+            for j in range(3, c):
+                ok &= math.isfinite(points[i, j])
+        # Clamped in float (cheaper than integer min here); >= 0, so truncation is floor. Rows
+        # not kept get a meaningless index and are overwritten (m does not advance).
+        ix = np.int64(min(max((x - lx) * sx, 0.0), fnx))
+        iy = np.int64(min(max((y - ly) * sy, 0.0), fny))
+        iz = np.int64(min(max((z - lz) * sz, 0.0), fnz))
+        packed[m] = ((((iz << by) | iy) << bx | ix) << row_bits) | i
+        m += ok
     dropped_range = n - m
-    skeys, perm = radix_sort_keys(keys[:m], nx * ny * nz - 1)
+    srt = radix_sort(packed[:m], row_bits, bx + by + bz)
 
-    # Group the sorted keys: one voxel per run, sums in float64 in input order.
+    # Pass 2: gather rows into sorted order (independent loads), then one voxel per run of equal
+    # keys with features summed sequentially in float64, in input order within the voxel.
+    rows = np.empty((m, c), np.float32)
     n_vox = 0
+    prev = np.int64(-1)
     for t in range(m):
-        if t == 0 or skeys[t] != skeys[t - 1]:
-            n_vox += 1
+        r = srt[t] & row_mask
+        for j in range(c):
+            rows[t, j] = points[r, j]
+        key = srt[t] >> row_bits
+        n_vox += key != prev
+        prev = key
     vkeys = np.empty(n_vox, np.int64)
     counts = np.zeros(n_vox, np.int32)
     sums = np.zeros((n_vox, c), np.float64)
     v = -1
+    prev = np.int64(-1)
     for t in range(m):
-        if t == 0 or skeys[t] != skeys[t - 1]:
-            v += 1
-            vkeys[v] = skeys[t]
+        key = srt[t] >> row_bits
+        v += key != prev
+        prev = key
+        vkeys[v] = key
         counts[v] += 1
-        r = rows[perm[t]]
         for j in range(c):
-            sums[v, j] += points[r, j]
+            sums[v, j] += rows[t, j]
 
     # Cap: keep the max_voxels fullest voxels, ties -> lower linear index; O(V + max count).
     keep = np.ones(n_vox, np.bool_)
     dropped_cap = 0
     if n_vox > max_voxels:
-        max_count = 0
-        for v in range(n_vox):
-            max_count = max(max_count, counts[v])
-        hist = np.zeros(max_count + 2, np.int64)
+        hist = np.zeros(m + 2, np.int64)
         for v in range(n_vox):
             hist[counts[v]] += 1
-        above = 0  # voxels with count > thr
-        thr = max_count
+        above = 0  # voxels with more than thr points
+        thr = m
         while above + hist[thr] < max_voxels:
             above += hist[thr]
             thr -= 1
@@ -162,22 +200,24 @@ def _voxelize_kernel(
             dropped_cap += counts[v]
     n_keep = min(n_vox, max_voxels)
 
+    # Output: mean = sum * (1 / count) in float64, then float32.
     coords = np.empty((n_keep, 3), np.int32)
     out_counts = np.empty(n_keep, np.int32)
-    features = np.empty((n_keep, c), np.float32)
+    feats = np.empty((n_keep, c), np.float32)
     k = 0
     for v in range(n_vox):
         if not keep[v]:
             continue
         key = vkeys[v]
-        coords[k, 2] = key % nx
-        coords[k, 1] = (key // nx) % ny
-        coords[k, 0] = key // (nx * ny)
+        coords[k, 2] = key & ((1 << bx) - 1)
+        coords[k, 1] = (key >> bx) & ((1 << by) - 1)
+        coords[k, 0] = key >> (bx + by)
         out_counts[k] = counts[v]
+        inv = 1.0 / counts[v]
         for j in range(c):
-            features[k, j] = np.float32(sums[v, j] / counts[v])
+            feats[k, j] = np.float32(sums[v, j] * inv)
         k += 1
-    return coords, out_counts, features, dropped_range, dropped_cap
+    return coords, out_counts, feats, dropped_range, dropped_cap
 
 
 def grid_arrays(grid: GridConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -203,8 +243,11 @@ def voxelize(points: np.ndarray, grid: GridConfig, max_voxels: int) -> Voxels:
         raise ValueError(f"max_voxels must be >= 1, got {max_voxels}")
     pts = np.ascontiguousarray(pts, dtype=np.float32)
     lo, hi, size, shape = grid_arrays(grid)
+    key_bits = sum(int(s - 1).bit_length() for s in shape)
+    if key_bits + pts.shape[0].bit_length() > 62:
+        raise ValueError(f"{pts.shape[0]} points on a {tuple(shape)} grid overflow the int64 sort key")
     coords, counts, feats, d_range, d_cap = _voxelize_kernel(
-        pts, lo, hi, size, shape, np.int64(max_voxels)
+        pts, lo, hi, 1.0 / size, shape, np.int64(max_voxels)
     )
     return Voxels(coords, counts, feats, int(d_range), int(d_cap))
 

@@ -37,13 +37,13 @@ import torch
 
 from msdnet.runtime.errors import MsdnetError
 from msdnet.training.config import ModelConfig, TrainConfig
+from msdnet.training.models import MODEL_KINDS, build_model
 
 FORMAT = "msdnet-checkpoint"  # value of checkpoint.json "format"
 FORMAT_VERSION = 1  # bumped when the layout changes incompatibly
 MODEL_FILE = "model.safetensors"
 TRAINING_FILE = "training.safetensors"
 META_FILE = "checkpoint.json"
-KINDS = ("teacher", "student", "r2ldm")
 
 
 @dataclass
@@ -289,7 +289,7 @@ def read_meta(path: str | Path) -> tuple[Path, dict[str, Any]]:
             folder / META_FILE,
             f"format version {meta.get('format_version')}, this msdnet reads {FORMAT_VERSION}",
         )
-    if meta.get("kind") not in KINDS:
+    if meta.get("kind") not in MODEL_KINDS:
         raise MsdnetError(folder / META_FILE, f"unknown model kind {meta.get('kind')!r}")
     for name, digest in meta.get("files", {}).items():
         file = folder / name
@@ -300,29 +300,27 @@ def read_meta(path: str | Path) -> tuple[Path, dict[str, Any]]:
     return folder, meta
 
 
-def _state_from_meta(meta: dict[str, Any], where: str) -> CheckpointState:
-    train = dataclass_from_dict(TrainConfig, meta["train_config"], f"{where}: train_config")
-    return CheckpointState(kind=meta["kind"], train=train, **meta["state"])
-
-
-def load_checkpoint(
-    path: str | Path, teacher: torch.nn.Module | None = None
-) -> tuple[torch.nn.Module, ModelConfig, CheckpointState]:
-    """(model with weights loaded, ModelConfig, CheckpointState) from a checkpoint folder.
-
-    The model is rebuilt with ``build_model(kind, cfg, teacher)``; for a student or R2LDM
-    whose teacher weights are not stored with it, the teacher is loaded from the checkpoint
-    path recorded in ``state.teacher`` unless given.
-    """
-    from msdnet.training.models import build_model
-
+def read_checkpoint(path: str | Path) -> tuple[Path, ModelConfig, CheckpointState]:
+    """(folder, ModelConfig, CheckpointState) of a checkpoint, without building the model."""
     folder, meta = read_meta(path)
     where = str(folder / META_FILE)
-    cfg = dataclass_from_dict(ModelConfig, meta["model_config"], f"{where}: model_config")
-    state = _state_from_meta(meta, where)
-    if teacher is None and state.kind != "teacher" and state.teacher:
-        teacher = load_checkpoint(state.teacher)[0]
-    model = build_model(state.kind, cfg, teacher=teacher)
+    cfg = dataclass_from_dict(ModelConfig, meta.get("model_config"), f"{where}: model_config")
+    train = dataclass_from_dict(TrainConfig, meta.get("train_config"), f"{where}: train_config")
+    try:
+        state = CheckpointState(kind=meta["kind"], train=train, **meta["state"])
+    except (KeyError, TypeError) as err:
+        raise MsdnetError(folder / META_FILE, f"bad state: {err}") from None
+    return folder, cfg, state
+
+
+def load_checkpoint(path: str | Path) -> tuple[torch.nn.Module, ModelConfig, CheckpointState]:
+    """(model with weights loaded, in eval mode; ModelConfig; CheckpointState).
+
+    The model is rebuilt with ``build_model(kind, cfg)``; a student or R2LDM checkpoint holds
+    its frozen teacher's weights too, so it loads on its own.
+    """
+    folder, cfg, state = read_checkpoint(path)
+    model = build_model(state.kind, cfg)
     load_weights(model, folder / MODEL_FILE)
     model.eval()
     return model, cfg, state
@@ -336,7 +334,9 @@ def load_weights(model: torch.nn.Module, file: Path) -> None:
         raise MsdnetError(file, f"cannot load weights: {str(err).splitlines()[0]}") from None
     if missing or unexpected:
         raise MsdnetError(
-            file, f"weights do not fit the model: missing {missing[:3]}, unexpected {unexpected[:3]}"
+            file,
+            f"weights do not fit the model: missing {sorted(missing)[:3]}, "
+            f"unexpected {sorted(unexpected)[:3]}",
         )
 
 

@@ -49,6 +49,47 @@ class ModelConfig:
     r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise
     threshold: float = 0.5  # occupancy threshold for decoding points
     losses: LossWeights = field(default_factory=LossWeights)  # loss weights
+    # (shift, scale) per radar column: the encoder graph applies (mean - shift) / scale to the
+    # per-voxel column means, so the runtime feeds raw means; () -> defaults by column name
+    radar_feature_norm: tuple[tuple[float, float], ...] = ()
+    lidar_feature_norm: tuple[tuple[float, float], ...] = ()  # the same for the LiDAR columns
+    s2d_blocks: int = 2  # residual blocks per resolution in the teacher's S2D enhancement
+    occupancy_prior: float = 0.02  # initial occupancy probability of the head (its bias init)
+
+    def __post_init__(self) -> None:
+        # Fill the default normalisation once, so asdict() / the manifest carry explicit numbers.
+        for name, cols in (("radar", self.radar_columns), ("lidar", self.lidar_columns)):
+            attr = f"{name}_feature_norm"
+            norm = getattr(self, attr)
+            if not norm:
+                norm = default_feature_norm(cols, self.grid)
+            norm = tuple((float(a), float(b)) for a, b in norm)
+            if len(norm) != len(cols) or any(b <= 0 for _, b in norm):
+                raise ValueError(f"{attr} needs one (shift, scale > 0) per column of {cols}")
+            object.__setattr__(self, attr, norm)
+
+
+# Typical spread of the non-geometric point columns: (shift, scale) so that most values land
+# in [-1, 1] (VoD RCS in dBsm: -30 ... +8; radial velocities in m/s; Astyx magnitude ~45-65).
+COLUMN_NORMS: dict[str, tuple[float, float]] = {
+    "rcs": (-10.0, 20.0),
+    "v_r": (0.0, 5.0),
+    "v_r_compensated": (0.0, 5.0),
+    "mag": (50.0, 10.0),
+    "time": (0.0, 0.1),
+    "intensity": (0.5, 0.5),
+    "reflectance": (0.5, 0.5),
+}
+
+
+def default_feature_norm(
+    columns: tuple[str, ...], grid: GridConfig
+) -> tuple[tuple[float, float], ...]:
+    """(shift, scale) per column: x, y, z map the grid range onto [-1, 1]; others COLUMN_NORMS
+    (unknown names: identity)."""
+    lo, hi = grid.point_range[:3], grid.point_range[3:]
+    geo = {a: ((lo[i] + hi[i]) / 2.0, (hi[i] - lo[i]) / 2.0) for i, a in enumerate("xyz")}
+    return tuple(geo.get(c, COLUMN_NORMS.get(c, (0.0, 1.0))) for c in columns)
 
 
 @dataclass(frozen=True)
@@ -82,7 +123,7 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
         adapter_hidden=16,
         denoiser_hidden=8,
         time_embed_dim=16,
-        head_channels=(8, 8, 4),
+        head_channels=(8, 8, 8),
         r2ldm_channels=(16, 32),
         train_sample_steps=2,
         r2ldm_sample_steps=8,

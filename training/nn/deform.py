@@ -13,14 +13,19 @@ mask, which are also torchvision's ``deform_conv2d``:
 
 Training runs :func:`deform_conv2d` (gather-based bilinear sampling, differentiable in the input,
 the weights and the offsets; no torchvision here). Under ``torch.onnx.export(..., dynamo=False)``
-the module routes through an ``autograd.Function`` whose ``symbolic`` emits one ``DeformConv``
-node, which onnxruntime's CPU provider runs (checked by tests/test_deform.py).
+the module calls the opaque custom op ``msdnet::deform_conv2d`` instead (the tracer records one
+node; an ``autograd.Function`` with ``symbolic`` traces its body into a sub-block that torch 2.13's
+peephole pass rejects), and the registered symbolic emits one ``DeformConv`` node, which
+onnxruntime 1.32's CPU provider runs (tests/test_deform.py: equal to the torch forward).
 """
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import Tensor, nn
+from torch.onnx import symbolic_helper
 
 ONNX_OPSET = 19  # first opset with DeformConv
 
@@ -80,28 +85,46 @@ def deform_conv2d(
     return out.reshape(b, o, ho, wo)
 
 
-class _DeformConvOnnx(torch.autograd.Function):
-    """Export-only wrapper: forward computes the torch result, symbolic emits ``DeformConv``."""
+@torch.library.custom_op("msdnet::deform_conv2d", mutates_args=())
+def _deform_conv2d_op(
+    x: Tensor,
+    weight: Tensor,
+    offset: Tensor,
+    bias: Tensor,
+    stride: list[int],
+    padding: list[int],
+    dilation: list[int],
+) -> Tensor:
+    """Opaque op used only while exporting: the tracer records one node, exported as DeformConv."""
+    return deform_conv2d(x, offset, weight, bias, _pair(stride), _pair(padding), _pair(dilation))
 
-    @staticmethod
-    def forward(ctx, x, weight, offset, bias, stride, padding, dilation):  # type: ignore[override]
-        return deform_conv2d(x, offset, weight, bias, stride, padding, dilation)
 
-    @staticmethod
-    def symbolic(g, x, weight, offset, bias, stride, padding, dilation):  # type: ignore[no-untyped-def]
-        return g.op(
-            "DeformConv",
-            x,
-            weight,
-            offset,
-            bias,
-            kernel_shape_i=list(weight.type().sizes()[2:]),
-            strides_i=list(stride),
-            pads_i=[padding[0], padding[1], padding[0], padding[1]],
-            dilations_i=list(dilation),
-            group_i=1,
-            offset_group_i=1,
-        )
+@_deform_conv2d_op.register_fake
+def _(x, weight, offset, bias, stride, padding, dilation):  # type: ignore[no-untyped-def]
+    return x.new_empty(x.shape[0], weight.shape[0], offset.shape[2], offset.shape[3])
+
+
+@symbolic_helper.parse_args("v", "v", "v", "v", "is", "is", "is")
+def _deform_conv2d_symbolic(g, x, weight, offset, bias, stride, padding, dilation):  # type: ignore[no-untyped-def]
+    """ONNX DeformConv (opset 19): inputs X, W, offset, B; pads are [top, left, bottom, right]."""
+    return g.op(
+        "DeformConv",
+        x,
+        weight,
+        offset,
+        bias,
+        kernel_shape_i=symbolic_helper._get_tensor_sizes(weight)[2:],
+        strides_i=stride,
+        pads_i=[padding[0], padding[1], padding[0], padding[1]],
+        dilations_i=dilation,
+        group_i=1,
+        offset_group_i=1,
+    )
+
+
+with warnings.catch_warnings():  # the TorchScript exporter's registry is deprecated, still works
+    warnings.simplefilter("ignore", DeprecationWarning)
+    torch.onnx.register_custom_op_symbolic("msdnet::deform_conv2d", _deform_conv2d_symbolic, ONNX_OPSET)
 
 
 class DeformConv2d(nn.Module):
@@ -142,10 +165,8 @@ class DeformConv2d(nn.Module):
     def forward_with_offset(self, x: Tensor, offset: Tensor) -> Tensor:
         """x: (B, in_ch, H, W), offset: (B, 2*k*k, H_out, W_out) -> (B, out_ch, H_out, W_out)."""
         if torch.onnx.is_in_onnx_export():
-            bias = self.bias if self.bias is not None else self.weight.new_zeros(len(self.weight))
-            return _DeformConvOnnx.apply(
-                x, self.weight, offset, bias, self.stride, self.padding, self.dilation
+            bias = self.bias if self.bias is not None else self.weight.new_zeros(self.weight.shape[0])
+            return _deform_conv2d_op(
+                x, self.weight, offset, bias, [*self.stride], [*self.padding], [*self.dilation]
             )
-        return deform_conv2d(
-            x, offset, self.weight, self.bias, self.stride, self.padding, self.dilation
-        )
+        return deform_conv2d(x, offset, self.weight, self.bias, self.stride, self.padding, self.dilation)

@@ -1,0 +1,149 @@
+"""``msdnet-bench voxelize``: numba voxelizer and rulebook builder against the numpy references.
+
+Clouds are synthetic and seeded (no data needed): a radar-like scatter (300 points, 5 columns
+x y z rcs v_r) and LiDAR-like surfaces (ground, two facades, car-sized boxes, poles; 4 columns
+x y z intensity; 2 cm noise; ~10 % of the points outside the grid) of 1k, 20k and 100k points.
+Every figure is the median over ``repeats`` timed calls after one untimed warm-up call.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import click
+import numpy as np
+
+from msdnet.benchmarks.numpy_reference import (
+    down_rulebook_numpy,
+    subm_rulebook_numpy,
+    voxelize_numpy,
+)
+from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.grid import GRID_PRESETS
+from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
+from msdnet.runtime.voxelize import voxelize, warmup
+
+POINT_COUNTS = (300, 1000, 20000, 100000)  # 300: a radar frame; the others LiDAR-like
+RULEBOOK_VOXELS = 40000  # LiDAR teacher voxels for the rulebook timing (paper grid)
+
+
+def radar_like_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 5) float32 [x, y, z, rcs, v_r]: scattered detections over a slightly larger box."""
+    xyz = rng.uniform((-1.0, -17.0, -3.0), (34.0, 17.0, 5.0), size=(n, 3))  # (n, 3) [x, y, z]
+    rcs = rng.normal(-12.0, 8.0, size=(n, 1))  # dBsm
+    vel = rng.normal(0.0, 2.0, size=(n, 1))  # m/s
+    return np.concatenate([xyz, rcs, vel], axis=1).astype(np.float32)
+
+
+def lidar_like_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
+    """(n, 4) float32 [x, y, z, intensity]: points on ground, facades, boxes and poles + noise."""
+    kind = rng.choice(5, size=n, p=(0.5, 0.15, 0.15, 0.15, 0.05))
+    u = rng.uniform(size=(n, 3))  # (n, 3) surface parameters in [0, 1)
+    pts = np.empty((n, 3))  # (n, 3) [x, y, z]
+    g = kind == 0  # ground, a little wider than the grid
+    pts[g] = np.stack([-2 + 36 * u[g, 0], -18 + 36 * u[g, 1], np.full(g.sum(), -1.6)], axis=1)
+    for k, side in ((1, -12.0), (2, 11.0)):  # facades along x
+        f = kind == k
+        pts[f] = np.stack([36 * u[f, 0] - 2, np.full(f.sum(), side), -1.6 + 7 * u[f, 1]], axis=1)
+    b = kind == 3  # eight 4.5 x 1.8 x 1.5 m boxes (parked cars), top and one side
+    car = rng.integers(0, 8, size=b.sum())
+    cx, cy = 4.0 + 3.5 * car, np.where(car % 2 == 0, -8.0, 7.0)
+    top = u[b, 2] < 0.5
+    pts[b] = np.stack(
+        [cx + 4.5 * u[b, 0], cy + 1.8 * np.where(top, u[b, 1], 0.0), -1.6 + np.where(top, 1.5, 1.5 * u[b, 1])],
+        axis=1,
+    )
+    p = kind == 4  # twelve poles, 0.2 m wide, 5 m tall
+    pole = rng.integers(0, 12, size=p.sum())
+    ang = 2 * np.pi * u[p, 0]
+    pts[p] = np.stack(
+        [2.0 + 2.6 * pole + 0.1 * np.cos(ang), np.where(pole % 2 == 0, -10.0, 9.5) + 0.1 * np.sin(ang),
+         -1.6 + 5.0 * u[p, 1]],
+        axis=1,
+    )  # fmt: skip
+    pts += rng.normal(0.0, 0.02, size=pts.shape)
+    intensity = rng.uniform(0.0, 1.0, size=(n, 1))
+    return np.concatenate([pts, intensity], axis=1).astype(np.float32)
+
+
+def median_ms(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``fn()`` in ms over ``repeats`` calls, after one untimed call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
+@dataclass(frozen=True)
+class BenchRow:
+    """One timed case."""
+
+    case: str  # what was timed
+    grid: str  # grid preset name
+    size: int  # points (voxelize) or voxels (rulebooks)
+    numba_ms: float  # median ms, numba
+    numpy_ms: float  # median ms, numpy reference
+
+    @property
+    def speedup(self) -> float:
+        return self.numpy_ms / self.numba_ms
+
+
+def run_voxelize_bench(repeats: int, seed: int = 0) -> list[BenchRow]:
+    """Time voxelize (numba vs numpy) at POINT_COUNTS on lite and paper, then the rulebooks."""
+    warmup()
+    rows = []
+    for grid_name in ("lite", "paper"):
+        grid = GRID_PRESETS[grid_name]
+        for n in POINT_COUNTS:
+            rng = np.random.default_rng(seed + n)
+            pts = radar_like_cloud(n, rng) if n == 300 else lidar_like_cloud(n, rng)
+            cap = 4096 if n == 300 else 60000
+            t_nb = median_ms(lambda pts=pts, g=grid, c=cap: voxelize(pts, g, c), repeats)
+            t_np = median_ms(lambda pts=pts, g=grid, c=cap: voxelize_numpy(pts, g, c), repeats)
+            rows.append(BenchRow("voxelize", grid_name, n, t_nb, t_np))
+    grid = GRID_PRESETS["paper"]
+    pts = lidar_like_cloud(150000, np.random.default_rng(seed))
+    coords = batch_coords([voxelize(pts, grid, RULEBOOK_VOXELS).coords])  # (V, 4) [b, z, y, x]
+    shape = grid.shape_zyx
+
+    def numpy_rulebooks() -> None:
+        level, lshape = coords, shape
+        for _ in range(3):
+            subm_rulebook_numpy(level, lshape)
+            level, _, lshape = down_rulebook_numpy(level, lshape)
+        subm_rulebook_numpy(level, lshape)
+
+    t_nb = median_ms(lambda: build_encoder_rulebooks(coords, shape), repeats)
+    t_np = median_ms(numpy_rulebooks, max(3, repeats // 5))
+    rows.append(BenchRow("rulebooks (4 subm + 3 down)", "paper", coords.shape[0], t_nb, t_np))
+    return rows
+
+
+def format_table(rows: list[BenchRow]) -> str:
+    """A plain-text table of the rows."""
+    head = f"{'case':<28} {'grid':<6} {'size':>7} {'numba ms':>9} {'numpy ms':>9} {'speedup':>8}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r.case:<28} {r.grid:<6} {r.size:>7} {r.numba_ms:>9.3f} {r.numpy_ms:>9.3f} "
+            f"{r.speedup:>7.1f}x"
+        )
+    return "\n".join(lines)
+
+
+@click.command("voxelize")
+@click.option("--repeats", "-r", default=20, show_default=True, help="timed calls per case")
+@click.option("--seed", default=0, show_default=True, help="seed of the synthetic clouds")
+@one_line_errors
+def voxelize_command(repeats: int, seed: int) -> None:
+    """Time the numba voxelizer and rulebook builder against the numpy references."""
+    if repeats < 1:
+        raise MsdnetError("--repeats", f"must be >= 1, got {repeats}")
+    click.echo(format_table(run_voxelize_bench(repeats, seed)))
+    click.echo("size: points (voxelize) or voxels (rulebooks); medians after one warm-up call")

@@ -1,0 +1,128 @@
+"""``manifest.json`` of an artifact folder: everything the runtime needs besides the graphs.
+
+Keys (read back by :mod:`msdnet.runtime.artifact`):
+
+- ``format_version``: ``onnx_spec.FORMAT_VERSION``; ``model_kind``: ``student`` | ``r2ldm``;
+- ``config``: the full ``ModelConfig`` (``dataclasses.asdict``);
+- ``grid``: point_range, voxel_size, fov_deg and the dense ``shape_zyx`` (D, H, W);
+- ``diffusion``: linear beta schedule parameters, ``alphas_cumprod`` (T + 1 values), the start
+  step m (``start_step``; T for R2LDM, which starts from pure noise), the interval n = m / T_m
+  (``interval``) and the default step count T_m (``sample_steps``);
+- ``threshold``: default occupancy threshold;
+- ``input``: point ``columns`` in order, the per-column ``normalisation`` (shift, scale; applied
+  inside ``encoder.onnx``, so the runtime feeds raw voxel means) and ``max_voxels``;
+- ``bev_shape``: (1, C, H, W) of every BEV map; ``opset``; ``versions`` (torch, onnx, ...);
+- ``parameters``: per graph and in total;
+- ``graphs``: per graph file: name, bytes, sha256, input and output names;
+- ``source``: the checkpoint exported; ``verification``: the ``--verify`` report, when run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import platform
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime
+import torch
+
+from msdnet.runtime import onnx_spec
+from msdnet.runtime.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
+from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod
+from msdnet.training.config import ModelConfig
+from msdnet.training.models import bev_shape
+
+
+def runtime_diffusion(cfg: ModelConfig, kind: str) -> DiffusionConfig:
+    """The schedule the runtime samples with: MSDNet from m with T_m steps, R2LDM from T (pure
+    noise) with ``r2ldm_sample_steps``."""
+    if kind == "r2ldm":
+        d = cfg.diffusion
+        return dataclasses.replace(d, start_step=d.num_train_steps, sample_steps=cfg.r2ldm_sample_steps)
+    return cfg.diffusion
+
+
+def versions() -> dict[str, str]:
+    """Library versions recorded in the manifest."""
+    try:
+        msdnet_version = version("msdnet")
+    except PackageNotFoundError:
+        msdnet_version = "unknown"
+    return {
+        "msdnet": msdnet_version,
+        "torch": torch.__version__,
+        "onnx": onnx.__version__,
+        "onnxruntime": onnxruntime.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
+
+
+def build_manifest(
+    folder: Path, kind: str, cfg: ModelConfig, params: dict[str, int], source: str
+) -> dict[str, Any]:
+    """The manifest of the graphs already written in ``folder`` (sizes and hashes read now)."""
+    diff = runtime_diffusion(cfg, kind)
+    graphs = []
+    for spec in GRAPHS_BY_KIND[kind]:
+        size, digest = file_digest(folder / spec.file)
+        graphs.append(
+            {
+                "name": spec.file.removesuffix(".onnx"),
+                "file": spec.file,
+                "bytes": size,
+                "sha256": digest,
+                "inputs": list(spec.inputs),
+                "outputs": list(spec.outputs),
+            }
+        )
+    shift, scale = zip(*cfg.radar_feature_norm, strict=True)
+    return {
+        "format_version": onnx_spec.FORMAT_VERSION,
+        "model_kind": kind,
+        "config": dataclasses.asdict(cfg),
+        "grid": {
+            "point_range": list(cfg.grid.point_range),
+            "voxel_size": list(cfg.grid.voxel_size),
+            "fov_deg": cfg.grid.fov_deg,
+            "shape_zyx": list(cfg.grid.shape_zyx),
+        },
+        "diffusion": {
+            "schedule": "linear",
+            "num_train_steps": diff.num_train_steps,
+            "beta_start": diff.beta_start,
+            "beta_end": diff.beta_end,
+            "start_step": diff.start_step,
+            "interval": diff.start_step / diff.sample_steps,
+            "sample_steps": diff.sample_steps,
+            "alphas_cumprod": alphas_cumprod(diff).tolist(),
+        },
+        "threshold": cfg.threshold,
+        "input": {
+            "columns": list(cfg.radar_columns),
+            "normalisation": {
+                "shift": list(shift),
+                "scale": list(scale),
+                "applied": "inside encoder.onnx: (voxel mean - shift) / scale",
+            },
+            "max_voxels": cfg.max_voxels_radar,
+        },
+        "bev_shape": [1, *bev_shape(cfg)],
+        "opset": onnx_spec.OPSET,
+        "versions": versions(),
+        "parameters": {**params, "total": sum(params.values())},
+        "graphs": graphs,
+        "source": source,
+    }
+
+
+def write_manifest(folder: Path, manifest: dict[str, Any]) -> Path:
+    """Write ``folder/manifest.json`` (the folder itself is published atomically later)."""
+    path = folder / MANIFEST
+    path.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
+    return path

@@ -1,0 +1,196 @@
+"""``msdnet-infer``: run an exported model over radar files, write dense clouds (no torch).
+
+Inputs are files or folders (the point-cloud files directly inside a folder, sorted) of any
+format ``runtime/io`` reads. Each output is ``OUT/<input stem>.<format>`` with columns
+``x y z confidence`` (radar frame, metres; confidence = occupancy). One bad file does not stop
+the others: the summary names it and the exit code is 1. Bad arguments exit 2 with one line.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import click
+import numpy as np
+from tqdm import tqdm
+
+from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io import READ_FORMATS, WRITE_FORMATS, read_cloud, write_cloud
+from msdnet.runtime.pointcloud import PointCloud
+
+BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "sim-lite"  # shipped default model
+OUT_COLUMNS = ("x", "y", "z", "confidence")  # columns of every written cloud
+EXIT_SOME_FAILED = 1
+
+_WORKER: dict[str, Any] = {}  # per-process pipeline and settings (worker processes)
+
+
+def resolve_model(model: Path | None) -> Path:
+    """--model, or the bundled model; MsdnetError when neither exists."""
+    if model is not None:
+        return model
+    if (BUNDLED_MODEL / "manifest.json").is_file():
+        return BUNDLED_MODEL
+    raise MsdnetError(
+        "--model",
+        f"no model given and no bundled model at {BUNDLED_MODEL}; "
+        "pass --model DIR (a folder written by msdnet-export)",
+    )
+
+
+def collect_inputs(inputs: tuple[Path, ...]) -> list[Path]:
+    """Files as given, folders expanded to the readable files directly inside them (sorted)."""
+    files: list[Path] = []
+    for item in inputs:
+        if item.is_dir():
+            found = sorted(
+                p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS
+            )
+            if not found:
+                raise MsdnetError(item, f"folder holds no point-cloud file ({' '.join(READ_FORMATS)})")
+            files += found
+        elif item.exists():
+            files.append(item)
+        else:
+            raise MsdnetError(item, "no such file or folder")
+    return files
+
+
+def output_paths(files: list[Path], out: Path, fmt: str) -> list[Path]:
+    """``OUT/<stem>.<fmt>`` per input; MsdnetError on a name clash or an output equal to an input."""
+    targets = [out / f"{f.stem}.{fmt}" for f in files]
+    seen: dict[Path, Path] = {}
+    resolved_inputs = {f.resolve() for f in files}
+    for src, dst in zip(files, targets, strict=True):
+        if dst.resolve() in resolved_inputs:
+            raise MsdnetError(dst, "output path equals an input path; choose another --out")
+        if dst in seen:
+            raise MsdnetError(dst, f"inputs {seen[dst]} and {src} would write the same output")
+        seen[dst] = src
+    return targets
+
+
+def _init_worker(model: str, provider: str, threads: int | None, opts: dict[str, Any]) -> None:
+    from msdnet.runtime.pipeline import Pipeline
+
+    _WORKER["pipe"] = Pipeline.from_dir(model, provider=provider, threads=threads)
+    _WORKER["opts"] = opts
+
+
+def _run_one(src: str, dst: str) -> dict[str, Any]:
+    """Process one file in this process's pipeline; never raises (errors are reported)."""
+    pipe, opts = _WORKER["pipe"], _WORKER["opts"]
+    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0}
+    try:
+        start = time.perf_counter()
+        cloud = read_cloud(src)
+        row["points_in"] = len(cloud)
+        res = pipe(cloud, steps=opts["steps"], threshold=opts["threshold"], seed=opts["seed"])
+        dense = np.concatenate([res.points, res.confidence[:, None]], axis=1)  # (M, 4)
+        write_cloud(dst, PointCloud(dense, OUT_COLUMNS, source=dst), opts["fmt"])
+        if opts["png"]:
+            from msdnet.runtime.viz import render_bev
+
+            layers = [(res.points, "#555555", "MSDNet dense", 0.5), (cloud.xyz, "#d62728", "radar", 6.0)]
+            render_bev(Path(dst).with_suffix(".png"), layers, pipe.artifact.grid, Path(src).name)
+        row.update(points_out=len(res.points), notes=list(res.notes))
+        row["seconds"] = time.perf_counter() - start
+    except MsdnetError as err:
+        row["error"] = str(err) if err.path else f"{src}: {err}"
+    except Exception as err:  # one bad file must not stop the batch
+        row["error"] = f"{src}: {type(err).__name__}: {' '.join(str(err).split())[:200]}"
+    return row
+
+
+def _summary(rows: list[dict[str, Any]], wall: float) -> tuple[str, int]:
+    failed = [r for r in rows if "error" in r]
+    ok = len(rows) - len(failed)
+    p_in = sum(r["points_in"] for r in rows if "error" not in r)
+    p_out = sum(r["points_out"] for r in rows if "error" not in r)
+    per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
+    lines = [
+        f"files: {ok} ok, {len(failed)} failed; points in {p_in}, out {p_out}; "
+        f"time {wall:.2f} s{per}"
+    ]
+    lines += [f"  empty: {r['file']}: {'; '.join(r['notes'])}" for r in rows if r.get("notes")]
+    lines += [f"  FAILED {r['error']}" for r in failed]
+    return "\n".join(lines), (EXIT_SOME_FAILED if failed else 0)
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--model", type=click.Path(path_type=Path), help="msdnet-export folder [bundled].")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option("--format", "fmt", type=click.Choice(WRITE_FORMATS), default="npy", show_default=True)
+@click.option("--steps", type=click.IntRange(min=1), help="DDIM steps [manifest T_m].")
+@click.option("--threshold", type=float, help="Occupancy threshold [manifest].")
+@click.option("--seed", type=int, default=0, show_default=True, help="Noise seed.")
+@click.option("--png", is_flag=True, help="Also write a BEV picture per file.")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
+@click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
+@one_line_errors
+def main(
+    inputs: tuple[Path, ...],
+    model: Path | None,
+    out: Path,
+    fmt: str,
+    steps: int | None,
+    threshold: float | None,
+    seed: int,
+    png: bool,
+    workers: int,
+    provider: str,
+    threads: int | None,
+) -> None:
+    """Densify radar point clouds with an exported MSDNet (or R2LDM) model."""
+    from msdnet.runtime.artifact import load_artifact
+    from msdnet.runtime.ddim import timesteps
+    from msdnet.runtime.session import resolve_providers
+
+    model_dir = resolve_model(model)
+    artifact = load_artifact(model_dir)  # refuse a bad model before touching any input
+    resolve_providers(provider)
+    if threshold is not None and not 0.0 < threshold < 1.0:
+        raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
+    try:
+        timesteps(artifact.diffusion, steps)
+    except ValueError as err:
+        raise MsdnetError("--steps", str(err)) from None
+    files = collect_inputs(inputs)
+    targets = output_paths(files, out, fmt)
+    out.mkdir(parents=True, exist_ok=True)
+    opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
+    if threads is None and workers > 1:
+        threads = max(1, (os.cpu_count() or 1) // workers)
+    start = time.perf_counter()
+    jobs = [(str(s), str(d)) for s, d in zip(files, targets, strict=True)]
+    bar = tqdm(total=len(jobs), unit="file", desc="msdnet-infer", disable=None)
+    rows: list[dict[str, Any]] = []
+    if workers == 1:
+        from msdnet.runtime.pipeline import Pipeline
+
+        _WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), opts=opts)
+        for job in jobs:
+            rows.append(_run_one(*job))
+            bar.update()
+    else:
+        ctx = multiprocessing.get_context("spawn")  # no onnxruntime/numba threads across fork
+        initargs = (str(model_dir), provider, threads, opts)
+        with ProcessPoolExecutor(workers, ctx, _init_worker, initargs) as pool:
+            futures = [pool.submit(_run_one, *job) for job in jobs]
+            for fut in as_completed(futures):
+                rows.append(fut.result())
+                bar.update()
+        order = {src: i for i, (src, _) in enumerate(jobs)}
+        rows.sort(key=lambda r: order[r["file"]])
+    bar.close()
+    text, code = _summary(rows, time.perf_counter() - start)
+    click.echo(text)
+    if code:
+        raise SystemExit(code)

@@ -1,0 +1,266 @@
+"""The torch-free inference pipeline: one radar scan in, a dense point cloud out.
+
+Stages (``Result.timings`` keys, seconds):
+
+1. ``prepare``: pick the manifest's input columns (by name from a :class:`PointCloud`, by
+   position from an array), float32.
+2. ``voxelize``: crop to the grid and voxelize (numba; the crop is the voxelizer's half-open
+   box test), then every encoder rulebook.
+3. ``encoder``: ``encoder.onnx`` -> F^S (1, C, H, W).
+4. ``adapter``: MSDNet: ``rgfd_adapter.onnx`` (F^S, eps) -> x_m. R2LDM: x_T = eps (pure noise).
+   eps ~ N(0, I) comes from ``numpy.random.default_rng(seed)``, so a seed fixes the output.
+5. ``denoise``: the DDIM loop, any step count chosen per call; each step runs the step graph
+   with the coefficients of ``runtime.ddim.step_coefficients`` (the update is inside the graph).
+6. ``head``: ``recon_head.onnx`` -> occupancy (1, 1, D, H', W'), offsets (1, 3, D, H', W').
+7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order.
+
+Buffers: F^S, the two ping-pong loop buffers and the head outputs are OrtValues allocated once
+and bound once (IOBinding): the loop only writes the three step scalars and swaps bindings, no
+array is copied per step. A Pipeline is therefore not thread-safe: use one per thread/process.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from msdnet.runtime import onnx_spec
+from msdnet.runtime.artifact import Artifact, load_artifact
+from msdnet.runtime.ddim import step_coefficients
+from msdnet.runtime.decode import decode_occupancy
+from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
+from msdnet.runtime.session import create_session, device_of
+from msdnet.runtime.voxelize import voxelize
+from msdnet.runtime.voxelize import warmup as numba_warmup
+
+
+@dataclass(frozen=True, eq=False)
+class Result:
+    """Output of one :class:`Pipeline` call."""
+
+    points: np.ndarray  # (M, 3) float32 [x, y, z], radar frame, metres
+    confidence: np.ndarray  # (M,) float32 occupancy of each point's voxel, > threshold
+    timings: dict[str, float]  # seconds per stage (module docstring) and "total"
+    stats: dict[str, int] = field(default_factory=dict)  # points_in, points_in_grid, voxels, steps
+    notes: tuple[str, ...] = ()  # human-readable remarks, e.g. why the output is empty
+
+
+def _empty_result(timings: dict[str, float], stats: dict[str, int], note: str) -> Result:
+    return Result(np.empty((0, 3), np.float32), np.empty(0, np.float32), timings, stats, (note,))
+
+
+class Pipeline:
+    """An exported MSDNet (or R2LDM) folder, ready to run: ``Pipeline.from_dir(d)(points)``."""
+
+    def __init__(self, artifact: Artifact, provider: str = "cpu", threads: int | None = None):
+        self.artifact = artifact  # checked manifest + graph bytes
+        self.provider = provider  # short provider name (cpu, cuda, tensorrt)
+        self.kind = artifact.kind  # "student" or "r2ldm"
+        self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
+        self.sessions: dict[str, ort.InferenceSession] = {}
+        for spec in artifact.specs:
+            sess = create_session(artifact.graphs[spec.file], spec.file, provider, threads)
+            names_in = tuple(i.name for i in sess.get_inputs())
+            names_out = tuple(o.name for o in sess.get_outputs())
+            if names_in != spec.inputs or names_out != spec.outputs:
+                raise MsdnetError(
+                    spec.file,
+                    f"graph inputs/outputs {names_in} -> {names_out} do not match the contract "
+                    f"{spec.inputs} -> {spec.outputs}",
+                )
+            self.sessions[spec.file] = sess
+        student = self.kind == "student"
+        self._step_spec = onnx_spec.DENOISER_STEP if student else onnx_spec.R2LDM_STEP
+        self._allocate(device_of(provider))
+
+    @classmethod
+    def from_dir(
+        cls, path: str | Path, provider: str = "cpu", threads: int | None = None
+    ) -> Pipeline:
+        """Load and check an artifact folder (``msdnet-export`` output) and open its sessions."""
+        return cls(load_artifact(path), provider=provider, threads=threads)
+
+    # ------------------------------------------------------------------ buffers and bindings
+
+    def _allocate(self, device: str) -> None:
+        """Allocate every reused buffer once and bind what stays fixed between calls."""
+        step = self.sessions[self._step_spec.file]
+        shape = [int(d) if isinstance(d, int) else -1 for d in step.get_inputs()[0].shape]
+        if len(shape) != 4 or min(shape) < 1 or shape[0] != 1:
+            raise MsdnetError(self._step_spec.file, f"x_t must have a static (1, C, H, W) shape, got {shape}")
+        stored = self.artifact.manifest.get("bev_shape")
+        if stored is not None and list(stored) != shape:
+            raise MsdnetError(self._step_spec.file, f"x_t shape {shape} != manifest bev_shape {stored}")
+        self.bev_shape = tuple(shape)  # (1, C, H, W) of F^S and every loop buffer
+
+        def buf(shape: tuple[int, ...]) -> ort.OrtValue:
+            return ort.OrtValue.ortvalue_from_shape_and_type(list(shape), np.float32, device, 0)
+
+        self._bev = buf(self.bev_shape)  # F^S: encoder output, adapter input / R2LDM condition
+        self._x = (buf(self.bev_shape), buf(self.bev_shape))  # ping-pong loop buffers
+        self._noise = np.empty(self.bev_shape, np.float32)  # eps, drawn in place per call
+        self._scalars = {k: np.zeros(1, np.float32) for k in ("t", "abar_t", "abar_prev")}
+        self._scalar_vals = {k: buf((1,)) for k in self._scalars}  # (1,) float32 step inputs
+        d, h, w = self.artifact.grid.shape_zyx
+        self._occ = np.empty((1, 1, d, h, w), np.float32)  # head outputs, host memory
+        self._off = np.empty((1, 3, d, h, w), np.float32)
+
+        # Two step bindings: even steps read x[0] and write x[1], odd steps the reverse.
+        self._step_bind = []
+        for src, dst in ((0, 1), (1, 0)):
+            b = step.io_binding()
+            b.bind_ortvalue_input("x_t", self._x[src])
+            for k, v in self._scalar_vals.items():
+                b.bind_ortvalue_input(k, v)
+            if self.kind == "r2ldm":
+                b.bind_ortvalue_input("cond", self._bev)
+            b.bind_ortvalue_output("x_prev", self._x[dst])
+            self._step_bind.append(b)
+        self._head_bind = []
+        head = self.sessions[onnx_spec.RECON_HEAD.file]
+        for src in (0, 1):
+            b = head.io_binding()
+            b.bind_ortvalue_input("features", self._x[src])
+            b.bind_ortvalue_output("occupancy", ort.OrtValue.ortvalue_from_numpy(self._occ))
+            b.bind_ortvalue_output("offsets", ort.OrtValue.ortvalue_from_numpy(self._off))
+            self._head_bind.append(b)
+        self._enc_bind = self.sessions[onnx_spec.ENCODER.file].io_binding()
+        self._enc_bind.bind_ortvalue_output("bev_features", self._bev)
+        if self.kind == "student":
+            self._adapter_bind = self.sessions[onnx_spec.RGFD_ADAPTER.file].io_binding()
+            self._adapter_bind.bind_ortvalue_input("bev_features", self._bev)
+            self._adapter_bind.bind_ortvalue_output("x_start", self._x[0])
+
+    # ------------------------------------------------------------------ stages
+
+    def select_columns(self, points: np.ndarray | PointCloud) -> np.ndarray:
+        """points: PointCloud (columns picked by name) or (N, C) array already in the manifest's
+        column order -> (N, C) float32 contiguous. MsdnetError on a column mismatch."""
+        if isinstance(points, PointCloud):
+            return np.ascontiguousarray(points.select(self.columns).points, dtype=np.float32)
+        arr = np.asarray(points)
+        if arr.ndim != 2 or arr.shape[1] != len(self.columns):
+            raise MsdnetError(
+                None,
+                f"points must be (N, {len(self.columns)}) [{' '.join(self.columns)}], "
+                f"got shape {arr.shape}",
+            )
+        return np.ascontiguousarray(arr, dtype=np.float32)
+
+    def _encode(self, pts: np.ndarray) -> tuple[int, int]:
+        """Voxelize ``pts`` (N, C) and run the encoder into F^S; -> (points in grid, voxels)."""
+        vox = voxelize(pts, self.artifact.grid, self.artifact.inputs.max_voxels)
+        n_vox = int(vox.coords.shape[0])
+        if n_vox == 0:
+            return pts.shape[0] - vox.dropped_out_of_range, 0
+        coords = batch_coords([vox.coords])  # (V_0, 4) int32 [b = 0, z, y, x]
+        rb = build_encoder_rulebooks(coords, self.artifact.grid.shape_zyx, onnx_spec.NUM_DOWN)
+        feeds = {"voxel_features": vox.features, "subm_rules_0": rb.subm[0]}
+        for level in range(1, onnx_spec.NUM_DOWN + 1):
+            feeds[f"down_rules_{level}"] = rb.down[level - 1]
+            feeds[f"subm_rules_{level}"] = rb.subm[level]
+        feeds["bev_coords"] = rb.coords[onnx_spec.NUM_DOWN]
+        self._timer("voxelize")
+        for name, arr in feeds.items():
+            dtype = np.float32 if name == "voxel_features" else np.int64
+            self._enc_bind.bind_cpu_input(name, np.ascontiguousarray(arr, dtype=dtype))
+        self.sessions[onnx_spec.ENCODER.file].run_with_iobinding(self._enc_bind)
+        return pts.shape[0] - vox.dropped_out_of_range, n_vox
+
+    def _timer(self, stage: str) -> None:
+        now = time.perf_counter()
+        self._timings[stage] = now - self._t
+        self._t = now
+
+    def coefficients(self, steps: int | None = None) -> np.ndarray:
+        """(T_m, 3) float32 ``[t, abar_t, abar_prev]`` for ``steps`` (None: the manifest's T_m)."""
+        try:
+            return step_coefficients(self.artifact.diffusion, steps)
+        except ValueError as err:
+            raise MsdnetError("steps", str(err)) from None
+
+    def __call__(
+        self,
+        points: np.ndarray | PointCloud,
+        steps: int | None = None,
+        threshold: float | None = None,
+        seed: int = 0,
+    ) -> Result:
+        """Run one scan: points (N, C) float32 (manifest columns) or a PointCloud ->
+        :class:`Result` with points (M, 3) [x, y, z] and confidence (M,). Same seed, same bytes."""
+        thr = self.artifact.threshold if threshold is None else float(threshold)
+        if not 0.0 < thr < 1.0:
+            raise MsdnetError("threshold", f"must be in (0, 1), got {thr}")
+        coeffs = self.coefficients(steps)
+        self._timings: dict[str, float] = {}
+        self._t = start = time.perf_counter()
+        pts = self.select_columns(points)
+        self._timer("prepare")
+        in_grid, n_vox = self._encode(pts)
+        stats = {"points_in": int(pts.shape[0]), "points_in_grid": in_grid, "voxels": n_vox}
+        stats["steps"] = int(coeffs.shape[0])
+        if n_vox == 0:
+            self._timer("voxelize")
+            self._timings["total"] = time.perf_counter() - start
+            why = "empty scan" if pts.shape[0] == 0 else "no point inside the grid"
+            return _empty_result(self._timings, stats, f"{why}: no voxels, empty output")
+        self._timer("encoder")
+        np.random.default_rng(seed).standard_normal(dtype=np.float32, out=self._noise)
+        if self.kind == "student":
+            self._adapter_bind.bind_cpu_input("noise", self._noise)
+            self.sessions[onnx_spec.RGFD_ADAPTER.file].run_with_iobinding(self._adapter_bind)
+        else:
+            self._x[0].update_inplace(self._noise)  # R2LDM starts from pure noise x_T
+        self._timer("adapter")
+        final = self._loop(coeffs)
+        self._timer("denoise")
+        self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
+        self._timer("head")
+        out, conf = decode_occupancy(self._occ[0, 0], self._off[0], self.artifact.grid, thr)
+        self._timer("decode")
+        self._timings["total"] = time.perf_counter() - start
+        notes = () if len(out) else ("no voxel above the threshold: empty output",)
+        return Result(out, conf, self._timings, stats, notes)
+
+    def _loop(self, coeffs: np.ndarray) -> int:
+        """Run the DDIM steps in place on the ping-pong buffers; -> index of the final buffer."""
+        sess = self.sessions[self._step_spec.file]
+        t, a_t, a_prev = (self._scalar_vals[k] for k in ("t", "abar_t", "abar_prev"))
+        host = self._scalars
+        for k in range(coeffs.shape[0]):
+            host["t"][0], host["abar_t"][0], host["abar_prev"][0] = coeffs[k]
+            t.update_inplace(host["t"])
+            a_t.update_inplace(host["abar_t"])
+            a_prev.update_inplace(host["abar_prev"])
+            sess.run_with_iobinding(self._step_bind[k % 2])
+        return coeffs.shape[0] % 2
+
+    def warmup(self, runs: int = 1) -> None:
+        """Compile the numba kernels and run the graphs ``runs`` times on a synthetic scan."""
+        numba_warmup()
+        lo = np.asarray(self.artifact.grid.point_range[:3], np.float32)
+        hi = np.asarray(self.artifact.grid.point_range[3:], np.float32)
+        rng = np.random.default_rng(0)
+        pts = np.zeros((64, len(self.columns)), np.float32)
+        pts[:, :3] = lo + (hi - lo) * rng.random((64, 3), dtype=np.float32)
+        for _ in range(runs):
+            self(pts, steps=1)
+
+    def describe(self) -> dict[str, Any]:
+        """Model kind, columns, grid, default steps and threshold: for logs and CLIs."""
+        a = self.artifact
+        return {
+            "kind": a.kind,
+            "columns": list(a.inputs.columns),
+            "grid_zyx": list(a.grid.shape_zyx),
+            "steps": a.diffusion.sample_steps,
+            "threshold": a.threshold,
+            "provider": self.provider,
+        }

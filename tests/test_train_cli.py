@@ -1,0 +1,162 @@
+"""``msdnet-train`` on real Astyx frames (tiny preset, 6 frames): teacher, student, R2LDM,
+kill + resume, NaN stop, one-line errors; and the torch datasets of training/data.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
+from msdnet.training.cli import main
+from msdnet.training.config import MODEL_PRESETS
+from msdnet.training.data import config_for_dataset, make_splits
+
+TINY = ["--preset", "tiny", "--frames", "6"]
+
+
+def _astyx(root: Path) -> list[str]:
+    return ["--dataset", "astyx", "--data", str(root), *TINY]
+
+
+def _train(args: list[str]) -> subprocess.CompletedProcess | object:
+    r = CliRunner().invoke(main, args)
+    assert r.exit_code == 0, r.output
+    return r
+
+
+def _log(out: Path) -> list[dict]:
+    return [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def teacher_run(tmp_path_factory, astyx_root) -> Path:
+    """A tiny teacher trained for the preset's 2 epochs on Astyx frames 0-4 (val: frame 5)."""
+    out = tmp_path_factory.mktemp("teacher") / "run"
+    _train(["teacher", *_astyx(astyx_root), "--out", str(out)])
+    return out
+
+
+def test_teacher_run_writes_checkpoints_log_and_metrics(teacher_run):
+    assert sorted(p.name for p in teacher_run.iterdir()) == ["best", "last", "log.jsonl"]
+    model, cfg, state = load_checkpoint(teacher_run / "last")
+    assert cfg == config_for_dataset(MODEL_PRESETS["tiny"], "astyx")
+    assert cfg.radar_columns == ("x", "y", "z", "v_r", "mag")
+    assert (state.kind, state.epoch, state.step, state.epochs) == ("teacher", 2, 6, 2)
+    assert state.dataset["train_frames"] == ["000000", "000004", 5]
+    epochs = [e for e in _log(teacher_run) if e["event"] == "epoch"]
+    assert [e["epoch"] for e in epochs] == [1, 2]
+    for e in epochs:
+        assert np.isfinite(e["val_loss"]) and np.isfinite(e["train_loss"])
+        assert 0.0 <= e["occ_iou"] <= 1.0 and e["occ_tp"] + e["occ_fn"] > 0  # LiDAR voxels exist
+    assert epochs[1]["train_loss"] < epochs[0]["train_loss"]  # it learns something
+    best = read_checkpoint(teacher_run / "best")[2]
+    assert best.best_val_loss == min(e["val_loss"] for e in epochs)
+    assert not any(p.requires_grad is False for p in model.parameters())
+
+
+@pytest.mark.parametrize("kind", ["student", "r2ldm"])
+def test_student_and_r2ldm_train_against_the_frozen_teacher(kind, teacher_run, astyx_root, tmp_path):
+    out = tmp_path / kind
+    _train([kind, *_astyx(astyx_root), "--epochs", "1", "--teacher", str(teacher_run / "best"),
+            "--out", str(out)])  # fmt: skip
+    model, cfg, state = load_checkpoint(out / "last")
+    teacher, _, _ = load_checkpoint(teacher_run / "best")
+    assert state.kind == kind and state.teacher == str((teacher_run / "best").resolve())
+    for name, p in teacher.state_dict().items():  # carried along and left untouched
+        assert torch.equal(model.teacher.state_dict()[name], p), name
+    rec = _log(out)[1]
+    assert rec["event"] == "epoch" and np.isfinite(rec["val_loss"]) and "occ_iou" in rec
+    assert "val_diff" in rec
+
+
+def test_killed_run_resumes_to_the_uninterrupted_result(teacher_run, astyx_root, tmp_path):
+    out = tmp_path / "run"
+    cmd = [sys.executable, "-m", "msdnet.training.cli", "teacher", *_astyx(astyx_root), "--out", str(out)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not (out / "last").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.01)
+        proc.send_signal(signal.SIGKILL)  # no chance to clean up: like a crash or OOM kill
+    finally:
+        proc.wait()
+    assert read_checkpoint(out / "last")[2].epoch == 1  # killed during epoch 2
+    r = CliRunner().invoke(main, ["teacher", *_astyx(astyx_root), "--out", str(out)])
+    assert r.exit_code == 2 and "pass --resume" in r.output
+    _train(["teacher", *_astyx(astyx_root), "--out", str(out), "--resume"])
+    resumed, _, state = load_checkpoint(out / "last")
+    full, _, full_state = load_checkpoint(teacher_run / "last")
+    assert (state.epoch, state.step) == (full_state.epoch, full_state.step) == (2, 6)
+    for name, p in full.state_dict().items():
+        assert torch.equal(resumed.state_dict()[name], p), name
+    assert state.history == full_state.history[:0] + state.history  # same bookkeeping
+    assert [h["val_loss"] for h in state.history] == [h["val_loss"] for h in full_state.history]
+    starts = [e for e in _log(out) if e["event"] == "start"]
+    assert [(e["resume"], e["step"]) for e in starts] == [(False, 0), (True, 3)]
+
+
+def test_nan_loss_stops_with_one_line_and_nonzero_exit(astyx_root, tmp_path):
+    r = CliRunner().invoke(main, ["teacher", *_astyx(astyx_root), "--lr", "1e30", "--out", str(tmp_path)])
+    assert r.exit_code == 2
+    lines = [ln for ln in r.output.splitlines() if ln.startswith("error:")]
+    assert len(lines) == 1 and "non-finite loss at epoch 1, step 2: " in lines[0], r.output
+    assert "=nan" in lines[0] and "Traceback" not in r.output
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["teacher", "--dataset", "astyx", "--data", "/nonexistent/astyx"], "dataset folder not found"),
+        (["teacher", "--dataset", "astyx", "--preset", "huge"], "unknown preset 'huge'"),
+        (["teacher", "--dataset", "kitti"], "unknown dataset 'kitti'"),
+        (["teacher", "--dataset", "astyx", "--epochs", "0"], "--epochs must be >= 1"),
+        (["critic", "--dataset", "astyx"], "unknown model kind 'critic'"),
+        (["student", "--dataset", "astyx"], "student needs --teacher CKPT"),
+        (["r2ldm", "--dataset", "astyx", "--teacher", "/nonexistent/ckpt"], "no such checkpoint"),
+        (["teacher", "--dataset", "astyx", "--resume"], "has no checkpoint 'last' to resume"),
+        (["teacher", "--dataset", "astyx", "--frames", "1"], "both need at least one"),
+    ],
+)
+def test_bad_input_is_one_line_error(args, message, astyx_root, tmp_path):
+    if "--data" not in args:
+        args = [*args, "--data", str(astyx_root)]
+    r = CliRunner().invoke(main, ["--out", str(tmp_path / "o"), "--preset", "tiny", *args])
+    assert r.exit_code == 2, r.output
+    assert r.output.count("\n") == 1 and r.output.startswith("error: ") and message in r.output
+
+
+def test_teacher_checkpoint_must_be_a_teacher_of_the_same_config(teacher_run, astyx_root, tmp_path):
+    r = CliRunner().invoke(main, ["student", *_astyx(astyx_root), "--preset", "lite",
+                                  "--teacher", str(teacher_run / "best"), "--out", str(tmp_path)])  # fmt: skip
+    assert r.exit_code == 2 and "teacher was trained with preset tiny" in r.output
+
+
+def test_splits_are_contiguous_cached_and_use_the_dataset_columns(astyx_root, vod_root):
+    cfg = config_for_dataset(MODEL_PRESETS["tiny"], "astyx")
+    train, val = make_splits("astyx", astyx_root, cfg, val_fraction=0.25, max_frames=8)
+    assert train.frame_ids == [f"{i:06d}" for i in range(6)] and val.frame_ids == ["000006", "000007"]
+    radar, lidar = train[0]
+    assert radar.dtype == lidar.dtype == np.float32
+    assert radar.shape[1] == 5 and lidar.shape[1] == 3 and len(lidar) > 10 * len(radar) > 0
+    x, y = radar[:, 0], radar[:, 1]
+    lo, hi = np.array(cfg.grid.point_range[:3]), np.array(cfg.grid.point_range[3:])
+    assert ((lidar >= lo) & (lidar <= hi)).all()  # cropped to the grid
+    assert train[0][0] is radar  # cached: same arrays back
+    assert np.isfinite(x).all() and np.isfinite(y).all()
+
+    vcfg = config_for_dataset(MODEL_PRESETS["tiny"], "vod")
+    vtrain, vval = make_splits("vod", vod_root, vcfg)
+    assert (len(vtrain), len(vval)) == (2, 1) and vval.frame_ids == ["01201"]
+    assert vtrain[0][0].shape[1] == len(vcfg.radar_columns) == 5
+    assert vcfg.radar_feature_norm != cfg.radar_feature_norm  # re-derived for Astyx's columns

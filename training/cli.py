@@ -1,0 +1,175 @@
+"""``msdnet-train``: train the LiDAR teacher, the MSDNet student or the R2LDM baseline.
+
+    msdnet-train teacher --dataset astyx --data ../shared/data/astyx_hires2019 --preset lite --out runs/t
+    msdnet-train student --dataset astyx --data ... --preset lite --teacher runs/t/best --out runs/s
+    torchrun --nproc_per_node=2 -m msdnet.training.cli teacher ...   # data-parallel (gloo on CPU)
+
+Writes ``OUT/last``, ``OUT/best`` (checkpoints) and ``OUT/log.jsonl``; ``--resume`` continues
+``OUT/last`` after a kill. Bad input and a NaN loss end in one line ``error: ...`` and exit 2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from functools import partial
+from pathlib import Path
+
+import click
+import torch
+
+from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.training.batch import collate
+from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
+from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, ModelConfig, TrainConfig
+from msdnet.training.data import DATASETS, config_for_dataset, make_splits
+from msdnet.training.distributed import DistInfo, init_distributed, shutdown_distributed
+from msdnet.training.loop import RunSpec, occupancy_counts, train
+from msdnet.training.models import MODEL_KINDS, build_model
+
+
+def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
+    if value not in choices:
+        raise MsdnetError(None, f"unknown {what} {value!r} (choose from {', '.join(choices)})")
+    return value
+
+
+def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
+    """The trained teacher from its checkpoint, after checking it fits ``cfg``."""
+    folder, tcfg, tstate = read_checkpoint(path)
+    if tstate.kind != "teacher":
+        raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
+    if tcfg != cfg:
+        raise MsdnetError(
+            folder,
+            f"teacher was trained with preset {tcfg.preset} and radar columns "
+            f"{','.join(tcfg.radar_columns)}; this run has {cfg.preset} and {','.join(cfg.radar_columns)}",
+        )
+    return load_checkpoint(folder)[0]
+
+
+def _epochs(kind: str, out: Path, resume: bool, epochs: int | None, tcfg: TrainConfig) -> int:
+    """Epochs of the run: --epochs, else on resume what OUT/last planned, else the preset's."""
+    has_last = (out / "last").exists() or (out / "last.old").exists()
+    if not resume:
+        if has_last:
+            raise MsdnetError(out, "already holds a checkpoint: pass --resume, or choose another --out")
+        return epochs or (tcfg.epochs_teacher if kind == "teacher" else tcfg.epochs_student)
+    if not has_last:
+        raise MsdnetError(out, "has no checkpoint 'last' to resume")
+    return epochs or read_checkpoint(out / "last")[2].epochs
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("kind", metavar="teacher|student|r2ldm")
+@click.option("--dataset", required=True, help="vod | astyx | sim (simulator output, VoD layout).")
+@click.option("--data", "data", required=True, type=click.Path(path_type=Path), help="Dataset root folder.")
+@click.option("--preset", default="lite", show_default=True, help="Model/train preset: tiny | lite | paper.")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Run folder.")
+@click.option("--epochs", type=int, default=None, help="Epochs (default: the preset's).")
+@click.option("--resume", is_flag=True, help="Continue OUT/last (weights, optimizer, schedule, position).")
+@click.option("--teacher", type=click.Path(path_type=Path), default=None, help="Teacher checkpoint.")
+@click.option("--batch-size", type=int, default=None, help="Frames per step and process.")
+@click.option("--lr", type=float, default=None, help="Peak learning rate (OneCycleLR).")
+@click.option("--seed", type=int, default=None, help="Seed for weights, order and noise.")
+@click.option("--val-fraction", type=float, default=0.2, show_default=True, help="Share of frames for val.")
+@click.option("--frames", "max_frames", type=int, default=None, help="Use only the first N frames.")
+@click.option("--radar-frames", type=int, default=1, show_default=True, help="VoD radar scans accumulated.")
+@click.option("--save-every", type=int, default=0, show_default=True, help="Also save every N steps.")
+@click.option("--workers", type=int, default=None, help="DataLoader worker processes.")
+@click.option("--device", default="cpu", show_default=True, help="torch device (cuda: one GPU per process).")
+@one_line_errors
+def main(
+    kind: str,
+    dataset: str,
+    data: Path,
+    preset: str,
+    out: Path,
+    epochs: int | None,
+    resume: bool,
+    teacher: Path | None,
+    batch_size: int | None,
+    lr: float | None,
+    seed: int | None,
+    val_fraction: float,
+    max_frames: int | None,
+    radar_frames: int,
+    save_every: int,
+    workers: int | None,
+    device: str,
+) -> None:
+    """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
+    _choice(kind, MODEL_KINDS, "model kind")
+    _choice(dataset, DATASETS, "dataset")
+    _choice(preset, sorted(MODEL_PRESETS), "preset")
+    if epochs is not None and epochs < 1:
+        raise MsdnetError(None, f"--epochs must be >= 1, got {epochs}")
+    overrides = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers}
+    tcfg = replace(TRAIN_PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None})
+    if tcfg.batch_size < 1 or tcfg.lr <= 0:
+        raise MsdnetError(None, "--batch-size must be >= 1 and --lr > 0")
+    cfg = config_for_dataset(MODEL_PRESETS[preset], dataset)
+    n_epochs = _epochs(kind, out, resume, epochs, tcfg)
+    if kind == "teacher" and teacher is not None:
+        raise MsdnetError(teacher, "--teacher is for student and r2ldm runs only")
+    if kind != "teacher" and teacher is None and not resume:
+        raise MsdnetError(None, f"{kind} needs --teacher CKPT (a trained teacher checkpoint)")
+    train_set, val_set = make_splits(dataset, data, cfg, val_fraction, max_frames, radar_frames)
+    # On resume the student / R2LDM checkpoint holds its teacher: no teacher file needed.
+    teacher_model = _teacher(teacher, cfg) if teacher is not None and not resume else None
+
+    info = init_distributed(torch.device(device))
+    try:
+        _run(kind, cfg, tcfg, train_set, val_set, out, n_epochs, resume, save_every, device,
+             teacher, teacher_model, dataset, data, info)  # fmt: skip
+    finally:
+        shutdown_distributed()
+
+
+def _run(
+    kind: str,
+    cfg: ModelConfig,
+    tcfg: TrainConfig,
+    train_set: torch.utils.data.Dataset,
+    val_set: torch.utils.data.Dataset,
+    out: Path,
+    epochs: int,
+    resume: bool,
+    save_every: int,
+    device: str,
+    teacher: Path | None,
+    teacher_model: torch.nn.Module | None,
+    dataset: str,
+    data: Path,
+    info: DistInfo,
+) -> None:
+
+    torch.manual_seed(tcfg.seed)  # identical initial weights on every rank
+    model = build_model(kind, cfg, teacher=teacher_model)
+    spec = RunSpec(
+        kind=kind,
+        out=out,
+        epochs=epochs,
+        resume=resume,
+        save_every=save_every,
+        device=device,
+        teacher=str(teacher.resolve()) if teacher is not None else None,
+        dataset={
+            "name": dataset,
+            "root": str(Path(data).resolve()),
+            "train_frames": [train_set.frame_ids[0], train_set.frame_ids[-1], len(train_set)],
+            "val_frames": [val_set.frame_ids[0], val_set.frame_ids[-1], len(val_set)],
+        },
+    )
+    metrics = partial(occupancy_counts, modality="lidar" if kind == "teacher" else "radar")
+    state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
+    if info.is_main:
+        last = state.history[-1] if state.history else {}
+        click.echo(
+            f"{kind}: epoch {state.epoch}/{epochs}, step {state.step}, "
+            f"val loss {last.get('val_loss', float('nan')):.4g}, best {state.best_val_loss:.4g} "
+            f"-> {out / 'best'}"
+        )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,116 @@
+"""Torch datasets over the runtime's readers: frames -> preprocess -> (radar, LiDAR) arrays.
+
+One sample is ``(radar (N, len(cfg.radar_columns)), lidar (M, len(cfg.lidar_columns)))``,
+float32, radar frame, after ``msdnet.runtime.preprocess.preprocess_frame`` (LiDAR cropped to
+the grid and the radar's field of view, ground removed), which is what
+``msdnet.training.batch.collate`` takes. Train and validation are contiguous frame ranges
+(the real datasets are drives in sequence; a random split would leak neighbouring frames).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torch.utils.data import Dataset
+
+from msdnet.runtime.errors import MsdnetError
+from msdnet.training.config import ModelConfig
+
+DATASETS = ("vod", "astyx", "sim")  # --dataset choices; "sim" is the simulator's VoD layout
+# Radar columns fed to the model per dataset (Astyx has magnitude instead of RCS and no
+# ego-motion-compensated velocity).
+RADAR_COLUMNS: dict[str, tuple[str, ...]] = {
+    "vod": ("x", "y", "z", "rcs", "v_r_compensated"),
+    "sim": ("x", "y", "z", "rcs", "v_r_compensated"),
+    "astyx": ("x", "y", "z", "v_r", "mag"),
+}
+CACHE_BYTES = 2 << 30  # preprocessed frames kept in memory per process, at most
+
+
+def config_for_dataset(cfg: ModelConfig, dataset: str) -> ModelConfig:
+    """``cfg`` with the dataset's radar columns (and their normalisation re-derived)."""
+    if dataset not in RADAR_COLUMNS:
+        raise MsdnetError(None, f"unknown dataset {dataset!r} (choose from {', '.join(DATASETS)})")
+    cols = RADAR_COLUMNS[dataset]
+    if cols == cfg.radar_columns:
+        return cfg
+    return replace(cfg, radar_columns=cols, radar_feature_norm=())
+
+
+def split_indices(frame_ids: list[str], val_fraction: float) -> tuple[list[int], list[int]]:
+    """(train, val) positions in ``frame_ids``: contiguous ranges by ``split_contiguous``.
+
+    Both parts must be non-empty (MsdnetError otherwise).
+    """
+    from msdnet.runtime.datasets import split_contiguous
+
+    if not 0.0 < val_fraction < 1.0:
+        raise MsdnetError(None, f"validation fraction must be in (0, 1), got {val_fraction}")
+    train_ids, val_ids = split_contiguous(frame_ids, val_fraction)
+    if not train_ids or not val_ids:
+        raise MsdnetError(
+            None,
+            f"{len(frame_ids)} frames give {len(train_ids)} train / {len(val_ids)} validation "
+            f"frames at validation fraction {val_fraction}: both need at least one",
+        )
+    pos = {fid: i for i, fid in enumerate(frame_ids)}
+    return [pos[f] for f in train_ids], [pos[f] for f in val_ids]
+
+
+class PairDataset(Dataset):
+    """Preprocessed (radar, LiDAR) pairs of some frames of a runtime reader, cached in memory."""
+
+    def __init__(self, frames: Any, indices: range | list[int], cfg: ModelConfig, cache: bool = True) -> None:
+        self.frames = frames  # runtime reader
+        self.indices = list(indices)  # reader indices of this split, in order
+        self.cfg = cfg  # grid and column choice
+        self.cache = cache  # keep preprocessed frames (up to CACHE_BYTES)
+        self._cached: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._bytes = 0
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    @property
+    def frame_ids(self) -> list[str]:
+        """The reader's frame ids of this split."""
+        return [self.frames.frame_ids[i] for i in self.indices]
+
+    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """-> (radar (N, Cr) float32 [cfg.radar_columns], lidar (M, Cl) float32 [cfg.lidar_columns])."""
+        if i in self._cached:
+            return self._cached[i]
+        from msdnet.runtime.preprocess import preprocess_frame
+
+        frame = preprocess_frame(self.frames[self.indices[i]], self.cfg.grid)
+        pair = (
+            np.ascontiguousarray(frame.radar.select(self.cfg.radar_columns).points, dtype=np.float32),
+            np.ascontiguousarray(frame.lidar.select(self.cfg.lidar_columns).points, dtype=np.float32),
+        )
+        size = pair[0].nbytes + pair[1].nbytes
+        if self.cache and self._bytes + size <= CACHE_BYTES:
+            self._cached[i] = pair
+            self._bytes += size
+        return pair
+
+
+def make_splits(
+    dataset: str,
+    root: str | Path,
+    cfg: ModelConfig,
+    val_fraction: float = 0.2,
+    max_frames: int | None = None,
+    radar_frames: int = 1,
+) -> tuple[PairDataset, PairDataset]:
+    """(train, val) PairDatasets over the first ``max_frames`` frames (all when None)."""
+    from msdnet.runtime.datasets import open_dataset
+
+    if dataset not in DATASETS:
+        raise MsdnetError(None, f"unknown dataset {dataset!r} (choose from {', '.join(DATASETS)})")
+    frames = open_dataset(dataset, root, radar_frames=radar_frames)
+    ids = list(frames.frame_ids) if max_frames is None else list(frames.frame_ids[:max_frames])
+    train_idx, val_idx = split_indices(ids, val_fraction)
+    return PairDataset(frames, train_idx, cfg), PairDataset(frames, val_idx, cfg)

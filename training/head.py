@@ -1,0 +1,91 @@
+"""Progressive point-cloud reconstruction head (MSDNet Eq. 2-4; R2LDM's LPCR), shared by the
+teacher and the student ("a common set of weights within the point cloud reconstruction network").
+
+    F^D (B, C, H8, W8) -> 1x1 conv to c4 * D8 channels -> re-read as (B, c4, D8, H8, W8)
+      -> 3x3x3 conv                                                      (1/8 grid)
+      -> 2x2x2 transposed conv, crop, 3x3x3 conv -> occupancy / offset    (1/4 grid, width c4)
+      -> 2x2x2 transposed conv, crop, 3x3x3 conv -> occupancy / offset    (1/2 grid, width c2)
+      -> 2x2x2 transposed conv, crop            -> occupancy / offset    (full grid, width c1)
+
+``head_channels = (c4, c2, c1)``. The full scale (paper: 40 x 320 x 320) has no 3x3x3 conv:
+only the transposed conv and the 1x1x1 branches, so it stays light. Crops make each scale
+exactly the encoder level's grid (``ceil(n / k)`` per axis; lite D = 20 -> 3 at 1/8 -> 6 -> 5).
+At each scale: occupancy = sigmoid(1x1x1 conv) (Eq. 3), offset = tanh(1x1x1 conv) x half that
+scale's voxel size per axis (Eq. 4), channels [dx, dy, dz] in metres.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor, nn
+
+from msdnet.training.config import ModelConfig
+from msdnet.training.encoder import level_shapes
+from msdnet.training.nn.blocks import group_norm
+from msdnet.training.targets import SCALE_FACTORS, scale_shapes
+
+
+def conv3d_norm_relu(channels: int) -> nn.Sequential:
+    """3x3x3 conv (padding 1) -> GroupNorm -> ReLU, width kept."""
+    return nn.Sequential(
+        nn.Conv3d(channels, channels, 3, padding=1, bias=False), group_norm(channels), nn.ReLU()
+    )
+
+
+class ReconHead(nn.Module):
+    """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        c4, c2, c1 = cfg.head_channels
+        self.d8 = level_shapes(cfg.grid)[-1][0]
+        self.c4 = c4
+        self.shapes = scale_shapes(cfg.grid)  # (D, H, W) per scale 1/4, 1/2, 1
+        self.lift = nn.Conv2d(cfg.bev_channels, c4 * self.d8, 1)
+        self.conv8 = conv3d_norm_relu(c4)
+        self.up4 = nn.ConvTranspose3d(c4, c4, 2, stride=2)
+        self.post4 = nn.Sequential(group_norm(c4), nn.ReLU(), conv3d_norm_relu(c4))
+        self.up2 = nn.ConvTranspose3d(c4, c2, 2, stride=2)
+        self.post2 = nn.Sequential(group_norm(c2), nn.ReLU(), conv3d_norm_relu(c2))
+        self.up1 = nn.ConvTranspose3d(c2, c1, 2, stride=2)
+        widths = (c4, c2, c1)
+        self.occ = nn.ModuleList([nn.Conv3d(c, 1, 1) for c in widths])
+        self.off = nn.ModuleList([nn.Conv3d(c, 3, 1) for c in widths])
+        prior = math.log(cfg.occupancy_prior / (1.0 - cfg.occupancy_prior))
+        for conv in self.occ:
+            nn.init.constant_(conv.bias, prior)  # start at the typical occupancy, not at 0.5
+        half = torch.tensor(cfg.grid.voxel_size, dtype=torch.float32) / 2.0  # [vx, vy, vz] / 2
+        for s, k in enumerate(SCALE_FACTORS):
+            self.register_buffer(f"half_size_{s}", (half * k).reshape(1, 3, 1, 1, 1), persistent=False)
+
+    def _crop(self, x: Tensor, s: int) -> Tensor:
+        d, h, w = self.shapes[s]
+        return x[:, :, :d, :h, :w]
+
+    def _branches(self, x: Tensor, s: int) -> tuple[Tensor, Tensor]:
+        """x (B, c, D, H, W) at scale s -> (occupancy logits (B, 1, D, H, W), offsets (B, 3, ...))."""
+        half = getattr(self, f"half_size_{s}")
+        return self.occ[s](x), torch.tanh(self.off[s](x)) * half
+
+    def _trunk(self, features: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """F^D (B, C, H8, W8) -> volumes at 1/4 (c4), 1/2 (c2) and 1 (c1)."""
+        b, _, h8, w8 = features.shape
+        x = self.lift(features).reshape(b, self.c4, self.d8, h8, w8)  # channel-major re-read
+        x = self.conv8(torch.relu(x))  # (B, c4, D8, H8, W8)
+        x4 = self.post4(self._crop(self.up4(x), 0))  # (B, c4, D4, H4, W4)
+        x2 = self.post2(self._crop(self.up2(x4), 1))  # (B, c2, D2, H2, W2)
+        x1 = torch.relu(self._crop(self.up1(x2), 2))  # (B, c1, D, H, W)
+        return x4, x2, x1
+
+    def multi_scale(self, features: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """F^D (B, C, H8, W8) -> per scale 1/4, 1/2, 1: (occupancy logits (B, 1, D_s, H_s, W_s),
+        offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]). Logits, for a stable BCE (Eq. 5)."""
+        return [self._branches(x, s) for s, x in enumerate(self._trunk(features))]
+
+    def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """Inference, full scale only (``recon_head.onnx``): F^D (B, C, H8, W8) ->
+        (occupancy (B, 1, D, H, W) in [0, 1], offsets (B, 3, D, H, W) metres [dx, dy, dz])."""
+        logits, off = self._branches(self._trunk(features)[2], 2)
+        return torch.sigmoid(logits), off

@@ -1,0 +1,234 @@
+"""The three trainable models: MSDNet's teacher and student, and the R2LDM baseline.
+
+Every model has ``losses(batch) -> {"loss": total, term: value, ...}`` (the training loop's
+contract) and ``predict(inp, noise) -> (occupancy (B, D, H, W) in [0, 1], offsets (B, 3, D, H, W)
+metres [dx, dy, dz])`` at full scale.
+
+- Teacher (MSDNet III-B): LiDAR encoder -> S2D -> F_l^D -> reconstruction head; loss Eq. 7.
+- Student (MSDNet III-C/D): radar encoder -> RGFD -> F_r^R -> noise adapter (Eq. 12) -> DDIM
+  loop over the light denoiser (``cfg.train_sample_steps`` steps from m while training, with
+  gradients; ``cfg.diffusion.sample_steps`` at inference) -> F_r^D -> the TEACHER's head (one
+  set of weights shared by both branches, frozen with the teacher). The denoiser also learns
+  the eps-prior on noised F_l^D (Eq. 10). Loss Eq. 15.
+- R2LDM: radar encoder -> condition c = F_r^S; U-Net eps-prediction on noised F_l^D (L2);
+  sampled from pure noise with ``cfg.r2ldm_sample_steps`` DDIM steps from T; the teacher's head
+  decodes (R2LDM stage 1 = the teacher, stage 2 = this model).
+
+The student and R2LDM hold the trained teacher as a frozen submodule (``requires_grad=False``,
+always in eval mode), so their checkpoints carry it and ``parameters()`` with
+``requires_grad`` lists only their own weights. The diffusion schedule comes from
+``msdnet.runtime.ddim`` (alphas_cumprod, step_coefficients); nothing is recomputed here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
+from msdnet.training.batch import Batch, EncoderInput
+from msdnet.training.config import ModelConfig
+from msdnet.training.encoder import SparseEncoder, level_shapes
+from msdnet.training.head import ReconHead
+from msdnet.training.losses import (
+    eps_loss,
+    feature_distillation,
+    reconstruction_loss,
+    student_total,
+)
+from msdnet.training.nn.adapter import NoiseAdapter
+from msdnet.training.nn.denoiser import DenoiserStep, LightDenoiser, ddim_loop
+from msdnet.training.nn.rgfd import RGFD
+from msdnet.training.nn.unet import R2LDMStep, R2LDMUNet
+from msdnet.training.s2d import S2D
+
+MODEL_KINDS = ("teacher", "student", "r2ldm")
+
+
+def _full_scale(head: ReconHead, features: Tensor) -> tuple[Tensor, Tensor]:
+    """F^D (B, C, H8, W8) -> (occupancy (B, D, H, W), offsets (B, 3, D, H, W))."""
+    occ, off = head(features)
+    return occ.squeeze(1), off
+
+
+class TeacherModel(nn.Module):
+    """LiDAR encoder -> S2D enhancement -> F_l^D -> reconstruction head."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = SparseEncoder(cfg, "lidar")
+        self.s2d = S2D(cfg)
+        self.head = ReconHead(cfg)
+
+    def features(self, lidar: EncoderInput) -> Tensor:
+        """F_l^D (B, C, H8, W8), the dense teacher features (distillation target)."""
+        return self.s2d(self.encoder.encode(lidar))
+
+    def losses(self, batch: Batch) -> dict[str, Tensor]:
+        """Eq. 7 on the LiDAR targets: {"loss", "recon", "occ_s4", "off_s4", ..., "off_s1"}."""
+        terms = reconstruction_loss(
+            self.head.multi_scale(self.features(batch.lidar)), batch.targets, self.cfg.losses
+        )
+        return {"loss": terms["recon"], **terms}
+
+    def predict(self, inp: EncoderInput, noise: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """LiDAR input -> full-scale (occupancy, offsets); ``noise`` is unused."""
+        return _full_scale(self.head, self.features(inp))
+
+
+class _FrozenTeacherMixin(nn.Module):
+    """Holds the frozen teacher; keeps it in eval mode whatever ``train()`` is called with."""
+
+    teacher: TeacherModel
+
+    def _attach_teacher(self, cfg: ModelConfig, teacher: TeacherModel | None) -> None:
+        teacher = TeacherModel(cfg) if teacher is None else teacher
+        if teacher.cfg.grid != cfg.grid or teacher.cfg.bev_channels != cfg.bev_channels:
+            raise ValueError("the teacher's grid / bev_channels differ from this model's config")
+        teacher.requires_grad_(False)
+        self.teacher = teacher.eval()
+        abar = torch.from_numpy(alphas_cumprod(cfg.diffusion).astype(np.float32))  # (T + 1,)
+        self.register_buffer("abar", abar, persistent=False)
+
+    def train(self, mode: bool = True) -> _FrozenTeacherMixin:
+        super().train(mode)
+        self.teacher.eval()
+        return self
+
+    def _teacher_latent(self, batch: Batch) -> tuple[Tensor, Tensor]:
+        """(F_l^D (B, C, H8, W8) without gradient, non-empty BEV cells (B, H8, W8) bool)."""
+        with torch.no_grad():
+            f_l = self.teacher.features(batch.lidar)
+        return f_l, batch.lidar.bev_mask(tuple(f_l.shape[2:]))
+
+    def _noised(self, x0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Eq. 9 with t ~ U{1..T} per sample: (x_t, t (B,) float32, eps), all like x0."""
+        t = torch.randint(1, self.cfg.diffusion.num_train_steps + 1, (x0.shape[0],), device=x0.device)
+        a = self.abar[t].reshape(-1, 1, 1, 1)  # (B, 1, 1, 1)
+        eps = torch.randn_like(x0)
+        return a.sqrt() * x0 + (1.0 - a).sqrt() * eps, t.float(), eps
+
+
+class StudentModel(_FrozenTeacherMixin):
+    """MSDNet: radar encoder -> RGFD -> noise adapter -> DDIM loop -> shared head."""
+
+    def __init__(self, cfg: ModelConfig, teacher: TeacherModel | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = SparseEncoder(cfg, "radar")
+        self.rgfd = RGFD(cfg)
+        self.adapter = NoiseAdapter(cfg)
+        self.step = DenoiserStep(LightDenoiser(cfg))  # what denoiser_step.onnx computes
+        self._attach_teacher(cfg, teacher)
+        train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
+        self.register_buffer("train_coeffs", torch.from_numpy(train_coeffs), persistent=False)
+
+    @property
+    def denoiser(self) -> LightDenoiser:
+        """The light eps-prediction network inside the DDIM step."""
+        return self.step.denoiser
+
+    @property
+    def head(self) -> ReconHead:
+        """The reconstruction head, shared with (and frozen with) the teacher."""
+        return self.teacher.head
+
+    def reconstructed(self, radar: EncoderInput) -> Tensor:
+        """F_r^R (B, C, H8, W8): RGFD on the radar BEV features."""
+        return self.rgfd(self.encoder.encode(radar))
+
+    def denoised(self, f_r: Tensor, noise: Tensor, coeffs: np.ndarray | Tensor) -> Tensor:
+        """F_r^D: adapter (Eq. 12) then the DDIM loop over ``coeffs`` rows [t, abar_t, abar_prev]."""
+        return ddim_loop(self.step, self.adapter(f_r, noise), coeffs)
+
+    def losses(self, batch: Batch) -> dict[str, Tensor]:
+        """Eq. 15: {"loss", "recon", "distill_rec", "distill_diff", "diff", per-scale occ/off}."""
+        w = self.cfg.losses
+        f_l, nonempty = self._teacher_latent(batch)
+        f_r = self.reconstructed(batch.radar)
+        f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
+        recon = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, w)
+        distill_rec = feature_distillation(f_r, f_l, nonempty, w.alpha, w.gamma)  # Eq. 8
+        distill_diff = feature_distillation(f_d, f_l, nonempty, w.alpha, w.gamma)  # Eq. 14
+        x_t, t, eps = self._noised(f_l)
+        diff = eps_loss(self.denoiser(x_t, t), eps)  # Eq. 10
+        total = student_total(recon["recon"], distill_rec, distill_diff, diff, w)
+        return {
+            "loss": total,
+            "distill_rec": distill_rec,
+            "distill_diff": distill_diff,
+            "diff": diff,
+            **recon,
+        }
+
+    def predict(
+        self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Radar input, eps (B, C, H8, W8) (default: torch.randn) -> full-scale (occ, off),
+        with ``sample_steps`` DDIM steps from m (default cfg.diffusion.sample_steps)."""
+        f_r = self.reconstructed(inp)
+        noise = torch.randn_like(f_r) if noise is None else noise
+        coeffs = step_coefficients(self.cfg.diffusion, sample_steps=sample_steps)
+        return _full_scale(self.head, self.denoised(f_r, noise, coeffs))
+
+
+class R2LDMModel(_FrozenTeacherMixin):
+    """R2LDM baseline: conditional latent diffusion from noise, decoded by the teacher's head."""
+
+    def __init__(self, cfg: ModelConfig, teacher: TeacherModel | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.encoder = SparseEncoder(cfg, "radar")
+        self.step = R2LDMStep(R2LDMUNet(cfg))  # what r2ldm_step.onnx computes
+        self._attach_teacher(cfg, teacher)
+
+    @property
+    def unet(self) -> R2LDMUNet:
+        """The eps-prediction U-Net inside the DDIM step."""
+        return self.step.unet
+
+    @property
+    def head(self) -> ReconHead:
+        """The teacher's reconstruction head (R2LDM's LPCR, trained in stage 1), frozen."""
+        return self.teacher.head
+
+    def losses(self, batch: Batch) -> dict[str, Tensor]:
+        """R2LDM stage 2: L2 eps-prediction on noised F_l^D given c = F_r^S: {"loss", "diff"}."""
+        f_l, _ = self._teacher_latent(batch)
+        cond = self.encoder.encode(batch.radar)
+        x_t, t, eps = self._noised(f_l)
+        diff = eps_loss(self.unet(x_t, t, cond), eps)
+        return {"loss": diff, "diff": diff}
+
+    def predict(
+        self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """Radar input, x_T (B, C, H8, W8) (default: torch.randn) -> full-scale (occ, off), with
+        ``sample_steps`` DDIM steps from T (default cfg.r2ldm_sample_steps)."""
+        cond = self.encoder.encode(inp)
+        x = torch.randn_like(cond) if noise is None else noise
+        steps = self.cfg.r2ldm_sample_steps if sample_steps is None else sample_steps
+        coeffs = step_coefficients(
+            self.cfg.diffusion, sample_steps=steps, start=self.cfg.diffusion.num_train_steps
+        )
+        return _full_scale(self.head, ddim_loop(self.step, x, coeffs, cond=cond))
+
+
+def build_model(kind: str, cfg: ModelConfig, teacher: TeacherModel | None = None) -> nn.Module:
+    """kind: "teacher" | "student" | "r2ldm". The student and R2LDM take the trained teacher
+    (frozen here); without one they get a fresh teacher whose weights a checkpoint must load."""
+    if kind == "teacher":
+        return TeacherModel(cfg)
+    if kind == "student":
+        return StudentModel(cfg, teacher)
+    if kind == "r2ldm":
+        return R2LDMModel(cfg, teacher)
+    raise ValueError(f"model kind must be one of {MODEL_KINDS}, got {kind!r}")
+
+
+def bev_shape(cfg: ModelConfig) -> tuple[int, int, int]:
+    """(C, H8, W8) of every BEV map (F^S, F^R, F^D, the noise eps) for this config."""
+    _, h8, w8 = level_shapes(cfg.grid)[-1]
+    return cfg.bev_channels, h8, w8
