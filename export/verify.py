@@ -9,8 +9,8 @@ inputs: the encoder a voxelized frame, the other graphs the torch outputs of the
   zero do not blow it up);
 - ``cosine`` = <onnx, torch> / (|onnx| |torch|) over the flattened output.
 
-End to end, the runtime :class:`Pipeline` and a torch loop over the same modules (same noise,
-same DDIM rows, the same decoder) densify each frame; a point "differs" when its voxel is
+End to end, the runtime :class:`Pipeline` and the torch model's own ``predict`` (same noise, same
+DDIM rows, the same decoder) densify each frame; a point "differs" when its voxel is
 occupied in one output only, or its positions differ by more than ``POINT_TOL_M``.
 """
 
@@ -189,8 +189,12 @@ def verify_artifact(
                 (x,) = run(step_file, feeds)
             else:
                 x = mod(*(torch.from_numpy(feeds[n]) for n in spec.inputs)).numpy()
-        occ, off = run(onnx_spec.RECON_HEAD.file, {"features": x})
-        ref_pts, _ = decode_occupancy(occ[0, 0], off[0], cfg.grid, pipe.artifact.threshold)
+        run(onnx_spec.RECON_HEAD.file, {"features": x})
+        # End to end, torch side: the model's own inference path, same noise and step count.
+        occ, off = model.predict(enc, noise=torch.from_numpy(noise), sample_steps=len(coeffs))
+        ref_pts, _ = decode_occupancy(
+            occ[0].numpy(), off[0].numpy(), cfg.grid, pipe.artifact.threshold
+        )
         got = pipe(pts, seed=seed)
         differ, shift = compare_points(ref_pts, got.points, cfg.grid)
         e2e.frames += 1

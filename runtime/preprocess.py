@@ -46,7 +46,8 @@ class GroundConfig:
     sectors_per_zone: tuple[int, ...] = (16, 32, 54, 32)  # Patchwork++ azimuth bins per zone
     plane_threshold: float = 0.2  # fallback: |distance to the plane| below this is ground, m
     plane_low_quantile: float = 0.3  # RANSAC draws from the lowest 30 % of points
-    plane_iterations: int = 200  # RANSAC plane hypotheses
+    plane_iterations: int = 100  # RANSAC plane hypotheses
+    plane_sample: int = 2000  # low points the hypotheses are scored on (a random subset)
     max_tilt_deg: float = 15.0  # planes tilted more than this from horizontal are rejected
     seed: int = 0  # RANSAC sampling seed (deterministic results)
 
@@ -97,8 +98,8 @@ def fit_ground_plane(xyz: np.ndarray, cfg: GroundConfig) -> tuple[np.ndarray, fl
     if len(low) < 3:
         return None
     rng = np.random.default_rng(cfg.seed)
-    if len(low) > 4000:
-        low = low[rng.choice(len(low), 4000, replace=False)]
+    if len(low) > cfg.plane_sample:
+        low = low[rng.choice(len(low), cfg.plane_sample, replace=False)]
     samples = low[rng.integers(0, len(low), size=(cfg.plane_iterations, 3))]  # (I, 3 pts, 3)
     normals = np.cross(samples[:, 1] - samples[:, 0], samples[:, 2] - samples[:, 0])  # (I, 3)
     norm = np.linalg.norm(normals, axis=1)
@@ -115,7 +116,7 @@ def fit_ground_plane(xyz: np.ndarray, cfg: GroundConfig) -> tuple[np.ndarray, fl
     best = int(np.argmax(inliers.sum(axis=0)))
     n, off = normals[best], float(d[best])
     for _ in range(2):  # least-squares refit on the inliers of all points
-        sel = p[np.abs(p @ n + off) < cfg.plane_threshold]
+        sel = p[np.abs(_plane_distance(p, n, off)) < cfg.plane_threshold]
         if len(sel) < 3:
             break
         centre = sel.mean(axis=0)
@@ -125,6 +126,11 @@ def fit_ground_plane(xyz: np.ndarray, cfg: GroundConfig) -> tuple[np.ndarray, fl
             break
         n, off = n_new, float(-n_new @ centre)
     return n, off
+
+
+def _plane_distance(p: np.ndarray, n: np.ndarray, off: float) -> np.ndarray:
+    """p: (N, 3) -> (N,) signed distance ``n . p + off`` (per column: faster than ``p @ n``)."""
+    return p[:, 0] * n[0] + p[:, 1] * n[1] + p[:, 2] * n[2] + off
 
 
 @contextlib.contextmanager
@@ -193,8 +199,8 @@ def ground_mask(xyz_sensor: np.ndarray, cfg: GroundConfig | None = None) -> Grou
             return GroundResult(mask, "patchwork", float(height))
     if plane is None:
         return GroundResult(np.zeros(len(p), dtype=bool), "none", float(height))
-    n, off = plane
-    return GroundResult(np.abs(p @ n + off) < cfg.plane_threshold, "plane", float(height))
+    mask = np.abs(_plane_distance(p, *plane)) < cfg.plane_threshold
+    return GroundResult(mask, "plane", float(height))
 
 
 def preprocess_frame(

@@ -139,6 +139,19 @@ def _rules_kernel(
 
 
 @njit(cache=True)
+def _reach(n_in: int, n_out: int, stride: int, padding: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per input index i along one axis, the output indices o with o * stride - padding + k == i
+    for some k in 0..2 and 0 <= o < n_out: the range first[i] .. last[i] (empty if last < first)."""
+    first = np.empty(n_in, np.int64)
+    last = np.empty(n_in, np.int64)
+    for i in range(n_in):
+        # o * stride in [i + padding - 2, i + padding]
+        first[i] = max((i + padding - 2 + stride - 1) // stride, 0) if i + padding >= 2 else 0
+        last[i] = min((i + padding) // stride, n_out - 1)
+    return first, last
+
+
+@njit(cache=True)
 def _down_coords_kernel(
     in_coords: np.ndarray, in_shape: np.ndarray, out_shape: np.ndarray, stride: int, padding: int
 ) -> np.ndarray:
@@ -147,39 +160,37 @@ def _down_coords_kernel(
     Candidate output rows come from the input rows (sorted, deduplicated); each output row then
     collects the x' reached from its (up to 9) input rows in a mark line, in ascending order.
     in_shape, out_shape: (3,) int64 (D, H, W)."""
-    d_in, h_in = in_shape[0], in_shape[1]
+    d_in, h_in, w_in = in_shape[0], in_shape[1], in_shape[2]
     d_out, h_out, w_out = out_shape[0], out_shape[1], out_shape[2]
     n_in = in_coords.shape[0]
+    z_first, z_last = _reach(d_in, d_out, stride, padding)
+    y_first, y_last = _reach(h_in, h_out, stride, padding)
+    x_first, x_last = _reach(w_in, w_out, stride, padding)
     in_starts = _row_starts(in_coords)
     in_keys = _row_keys(in_coords, in_starts, d_in, h_in)
     n_batch = 0
     for i in range(n_in):
         n_batch = max(n_batch, np.int64(in_coords[i, 0]) + 1)
-    # Output rows: every (z', y') that some input row reaches.
+    # Output rows: every (b, z', y') that some input row reaches, sorted, with repeats.
     cand = np.empty(in_keys.size * 9, np.int64)
     m = 0
     for r in range(in_keys.size):
         i = in_starts[r]
-        for kz in range(3):
-            tz = np.int64(in_coords[i, 1]) + padding - kz
-            if tz < 0 or tz % stride != 0 or tz // stride >= d_out:
-                continue
-            for ky in range(3):
-                ty = np.int64(in_coords[i, 2]) + padding - ky
-                if ty < 0 or ty % stride != 0 or ty // stride >= h_out:
-                    continue
-                cand[m] = (np.int64(in_coords[i, 0]) * d_out + tz // stride) * h_out + ty // stride
+        b, z, y = np.int64(in_coords[i, 0]), in_coords[i, 1], in_coords[i, 2]
+        for zo in range(z_first[z], z_last[z] + 1):
+            for yo in range(y_first[y], y_last[y] + 1):
+                cand[m] = (b * d_out + zo) * h_out + yo
                 m += 1
     rows = radix_sort(cand[:m], 0, bit_length(n_batch * d_out * h_out - 1))
-    # Per output row: union of the x' its input rows reach.
-    per_voxel = 1
+    # Per output row: the union of the x' its input rows reach.
+    most = 1  # most outputs one input reaches per axis, cubed
     for _ in range(3):
-        per_voxel *= (3 + stride - 1) // stride  # most outputs one input reaches per axis
-    out = np.empty((n_in * per_voxel, 4), np.int32)
+        most *= (3 + stride - 1) // stride
+    out = np.empty((n_in * most, 4), np.int32)
     n_out = 0
     mark = np.zeros(w_out, np.bool_)
     xs = np.empty(w_out, np.int64)
-    ptr = np.zeros(9, np.int64)
+    ptr = np.zeros(9, np.int64)  # per (kz, ky): current input row
     for t in range(m):
         if t > 0 and rows[t] == rows[t - 1]:
             continue
@@ -193,21 +204,21 @@ def _down_coords_kernel(
             yi = yo * stride - padding + kk % 3
             if zi < 0 or zi >= d_in or yi < 0 or yi >= h_in:
                 continue
-            p = _find_row(in_keys, ptr[kk], (b * d_in + zi) * h_in + yi)
+            target = (b * d_in + zi) * h_in + yi
+            p = _find_row(in_keys, ptr[kk], target)
             ptr[kk] = p
-            if p == in_keys.size or in_keys[p] != (b * d_in + zi) * h_in + yi:
+            if p == in_keys.size or in_keys[p] != target:
                 continue
             for j in range(in_starts[p], in_starts[p + 1]):
-                for kx in range(3):
-                    tx = np.int64(in_coords[j, 3]) + padding - kx
-                    if tx >= 0 and tx % stride == 0 and tx // stride < w_out:
-                        xo = tx // stride
-                        if not mark[xo]:
-                            mark[xo] = True
-                            xs[cnt] = xo
-                            cnt += 1
-                            lo = min(lo, xo)
-                            hi = max(hi, xo)
+                x = in_coords[j, 3]
+                for xo in range(x_first[x], x_last[x] + 1):
+                    if not mark[xo]:
+                        mark[xo] = True
+                        xs[cnt] = xo
+                        cnt += 1
+            if in_starts[p + 1] > in_starts[p]:
+                lo = min(lo, x_first[in_coords[in_starts[p], 3]])
+                hi = max(hi, x_last[in_coords[in_starts[p + 1] - 1, 3]])
         if hi - lo + 1 <= 4 * cnt:  # dense row: read the marks in order
             for xo in range(lo, hi + 1):
                 if mark[xo]:

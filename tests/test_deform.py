@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import warnings
 
 import numpy as np
 import onnx
@@ -66,7 +67,9 @@ class _WithOffset(nn.Module):
 
 def _export(module: nn.Module, args: tuple, names: list[str]) -> bytes:
     buf = io.BytesIO()
-    torch.onnx.export(module, args, buf, opset_version=ONNX_OPSET, dynamo=False, input_names=names)
+    with warnings.catch_warnings():  # the TorchScript exporter warns that it is deprecated
+        warnings.simplefilter("ignore")
+        torch.onnx.export(module, args, buf, opset_version=ONNX_OPSET, dynamo=False, input_names=names)
     return buf.getvalue()
 
 

@@ -4,7 +4,6 @@ kill + resume, NaN stop, one-line errors; and the torch datasets of training/dat
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -28,10 +27,9 @@ def _astyx(root: Path) -> list[str]:
     return ["--dataset", "astyx", "--data", str(root), *TINY]
 
 
-def _train(args: list[str]) -> subprocess.CompletedProcess | object:
+def _train(args: list[str]) -> None:
     r = CliRunner().invoke(main, args)
     assert r.exit_code == 0, r.output
-    return r
 
 
 def _log(out: Path) -> list[dict]:
@@ -61,7 +59,7 @@ def test_teacher_run_writes_checkpoints_log_and_metrics(teacher_run):
     assert epochs[1]["train_loss"] < epochs[0]["train_loss"]  # it learns something
     best = read_checkpoint(teacher_run / "best")[2]
     assert best.best_val_loss == min(e["val_loss"] for e in epochs)
-    assert not any(p.requires_grad is False for p in model.parameters())
+    assert all(p.requires_grad for p in model.parameters())
 
 
 @pytest.mark.parametrize("kind", ["student", "r2ldm"])
@@ -82,8 +80,7 @@ def test_student_and_r2ldm_train_against_the_frozen_teacher(kind, teacher_run, a
 def test_killed_run_resumes_to_the_uninterrupted_result(teacher_run, astyx_root, tmp_path):
     out = tmp_path / "run"
     cmd = [sys.executable, "-m", "msdnet.training.cli", "teacher", *_astyx(astyx_root), "--out", str(out)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 120
         while not (out / "last").exists() and proc.poll() is None and time.monotonic() < deadline:
@@ -100,8 +97,10 @@ def test_killed_run_resumes_to_the_uninterrupted_result(teacher_run, astyx_root,
     assert (state.epoch, state.step) == (full_state.epoch, full_state.step) == (2, 6)
     for name, p in full.state_dict().items():
         assert torch.equal(resumed.state_dict()[name], p), name
-    assert state.history == full_state.history[:0] + state.history  # same bookkeeping
-    assert [h["val_loss"] for h in state.history] == [h["val_loss"] for h in full_state.history]
+    for h, f in zip(state.history, full_state.history, strict=True):  # same numbers, not times
+        assert {k: v for k, v in h.items() if k != "seconds"} == {
+            k: v for k, v in f.items() if k != "seconds"
+        }
     starts = [e for e in _log(out) if e["event"] == "start"]
     assert [(e["resume"], e["step"]) for e in starts] == [(False, 0), (True, 3)]
 
@@ -137,8 +136,8 @@ def test_bad_input_is_one_line_error(args, message, astyx_root, tmp_path):
 
 
 def test_teacher_checkpoint_must_be_a_teacher_of_the_same_config(teacher_run, astyx_root, tmp_path):
-    r = CliRunner().invoke(main, ["student", *_astyx(astyx_root), "--preset", "lite",
-                                  "--teacher", str(teacher_run / "best"), "--out", str(tmp_path)])  # fmt: skip
+    args = ["student", *_astyx(astyx_root), "--preset", "lite", "--teacher", str(teacher_run / "best")]
+    r = CliRunner().invoke(main, [*args, "--out", str(tmp_path)])
     assert r.exit_code == 2 and "teacher was trained with preset tiny" in r.output
 
 
@@ -149,11 +148,10 @@ def test_splits_are_contiguous_cached_and_use_the_dataset_columns(astyx_root, vo
     radar, lidar = train[0]
     assert radar.dtype == lidar.dtype == np.float32
     assert radar.shape[1] == 5 and lidar.shape[1] == 3 and len(lidar) > 10 * len(radar) > 0
-    x, y = radar[:, 0], radar[:, 1]
     lo, hi = np.array(cfg.grid.point_range[:3]), np.array(cfg.grid.point_range[3:])
     assert ((lidar >= lo) & (lidar <= hi)).all()  # cropped to the grid
     assert train[0][0] is radar  # cached: same arrays back
-    assert np.isfinite(x).all() and np.isfinite(y).all()
+    assert np.isfinite(radar).all()
 
     vcfg = config_for_dataset(MODEL_PRESETS["tiny"], "vod")
     vtrain, vval = make_splits("vod", vod_root, vcfg)

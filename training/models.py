@@ -89,7 +89,7 @@ class _FrozenTeacherMixin(nn.Module):
             raise ValueError("the teacher's grid / bev_channels differ from this model's config")
         teacher.requires_grad_(False)
         self.teacher = teacher.eval()
-        abar = torch.from_numpy(alphas_cumprod(cfg.diffusion).astype(np.float32))  # (T + 1,)
+        abar = torch.tensor(alphas_cumprod(cfg.diffusion), dtype=torch.float32)  # (T + 1,)
         self.register_buffer("abar", abar, persistent=False)
 
     def train(self, mode: bool = True) -> _FrozenTeacherMixin:
@@ -123,7 +123,7 @@ class StudentModel(_FrozenTeacherMixin):
         self.step = DenoiserStep(LightDenoiser(cfg))  # what denoiser_step.onnx computes
         self._attach_teacher(cfg, teacher)
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
-        self.register_buffer("train_coeffs", torch.from_numpy(train_coeffs), persistent=False)
+        self.register_buffer("train_coeffs", torch.tensor(train_coeffs), persistent=False)
 
     @property
     def denoiser(self) -> LightDenoiser:
