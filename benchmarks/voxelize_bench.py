@@ -2,8 +2,11 @@
 
 Clouds are synthetic and seeded (no data needed): a radar-like scatter (300 points, 5 columns
 x y z rcs v_r) and LiDAR-like surfaces (ground, two facades, car-sized boxes, poles; 4 columns
-x y z intensity; 2 cm noise; ~10 % of the points outside the grid) of 1k, 20k and 100k points.
-Every figure is the median over ``repeats`` timed calls after one untimed warm-up call.
+x y z intensity; 2 cm noise; ~20 % of the points outside the grid) of 1k, 20k and 100k points.
+The rulebooks are built for a LiDAR-like cloud capped at 40k voxels on the paper grid; the
+decoder runs on the paper grid with 1 % of the voxels occupied. Every figure is the median over
+``repeats`` timed calls after one untimed warm-up call (numpy rulebooks/decoder: repeats / 5,
+at least 3).
 """
 
 from __future__ import annotations
@@ -16,17 +19,21 @@ import click
 import numpy as np
 
 from msdnet.benchmarks.numpy_reference import (
+    decode_numpy,
     down_rulebook_numpy,
     subm_rulebook_numpy,
     voxelize_numpy,
 )
-from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.decode import decode_occupancy
+from msdnet.runtime.errors import one_line_errors
 from msdnet.runtime.grid import GRID_PRESETS
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.voxelize import voxelize, warmup
 
-POINT_COUNTS = (300, 1000, 20000, 100000)  # 300: a radar frame; the others LiDAR-like
+POINT_COUNTS = (300, 1000, 20000, 100000)  # points per cloud timed by voxelize
+RADAR_POINTS = 300  # clouds up to this size are radar-like, larger ones LiDAR-like
 RULEBOOK_VOXELS = 40000  # LiDAR teacher voxels for the rulebook timing (paper grid)
+DECODE_FILL = 0.01  # fraction of occupied voxels in the decoder timing (~40k on the paper grid)
 
 
 def radar_like_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
@@ -52,7 +59,11 @@ def lidar_like_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
     cx, cy = 4.0 + 3.5 * car, np.where(car % 2 == 0, -8.0, 7.0)
     top = u[b, 2] < 0.5
     pts[b] = np.stack(
-        [cx + 4.5 * u[b, 0], cy + 1.8 * np.where(top, u[b, 1], 0.0), -1.6 + np.where(top, 1.5, 1.5 * u[b, 1])],
+        [
+            cx + 4.5 * u[b, 0],
+            cy + 1.8 * np.where(top, u[b, 1], 0.0),
+            -1.6 + np.where(top, 1.5, 1.5 * u[b, 1]),
+        ],
         axis=1,
     )
     p = kind == 4  # twelve poles, 0.2 m wide, 5 m tall
@@ -94,34 +105,51 @@ class BenchRow:
         return self.numpy_ms / self.numba_ms
 
 
-def run_voxelize_bench(repeats: int, seed: int = 0) -> list[BenchRow]:
-    """Time voxelize (numba vs numpy) at POINT_COUNTS on lite and paper, then the rulebooks."""
+def run_voxelize_bench(
+    repeats: int,
+    seed: int = 0,
+    point_counts: tuple[int, ...] = POINT_COUNTS,
+    rulebook_voxels: int = RULEBOOK_VOXELS,
+    grids: tuple[str, ...] = ("lite", "paper"),
+    big_grid: str = "paper",
+) -> list[BenchRow]:
+    """Time voxelize (numba vs numpy) per grid and point count, then on ``big_grid`` the encoder
+    rulebooks for a LiDAR-like cloud of ``rulebook_voxels`` voxels and the decoder."""
     warmup()
     rows = []
-    for grid_name in ("lite", "paper"):
+    for grid_name in grids:
         grid = GRID_PRESETS[grid_name]
-        for n in POINT_COUNTS:
+        for n in point_counts:
             rng = np.random.default_rng(seed + n)
-            pts = radar_like_cloud(n, rng) if n == 300 else lidar_like_cloud(n, rng)
-            cap = 4096 if n == 300 else 60000
+            pts = radar_like_cloud(n, rng) if n <= RADAR_POINTS else lidar_like_cloud(n, rng)
+            cap = 60000
             t_nb = median_ms(lambda pts=pts, g=grid, c=cap: voxelize(pts, g, c), repeats)
             t_np = median_ms(lambda pts=pts, g=grid, c=cap: voxelize_numpy(pts, g, c), repeats)
             rows.append(BenchRow("voxelize", grid_name, n, t_nb, t_np))
-    grid = GRID_PRESETS["paper"]
-    pts = lidar_like_cloud(150000, np.random.default_rng(seed))
-    coords = batch_coords([voxelize(pts, grid, RULEBOOK_VOXELS).coords])  # (V, 4) [b, z, y, x]
+
+    grid = GRID_PRESETS[big_grid]
+    # ~1.6 points per occupied paper voxel in this scene, so this many points reach the cap
+    pts = lidar_like_cloud(int(rulebook_voxels * 1.6) + 1000, np.random.default_rng(seed))
+    coords = batch_coords([voxelize(pts, grid, rulebook_voxels).coords])  # (V, 4) [b, z, y, x]
     shape = grid.shape_zyx
 
     def numpy_rulebooks() -> None:
-        level, lshape = coords, shape
+        level, level_shape = coords, shape
         for _ in range(3):
-            subm_rulebook_numpy(level, lshape)
-            level, _, lshape = down_rulebook_numpy(level, lshape)
-        subm_rulebook_numpy(level, lshape)
+            subm_rulebook_numpy(level, level_shape)
+            level, _, level_shape = down_rulebook_numpy(level, level_shape)
+        subm_rulebook_numpy(level, level_shape)
 
     t_nb = median_ms(lambda: build_encoder_rulebooks(coords, shape), repeats)
     t_np = median_ms(numpy_rulebooks, max(3, repeats // 5))
-    rows.append(BenchRow("rulebooks (4 subm + 3 down)", "paper", coords.shape[0], t_nb, t_np))
+    rows.append(BenchRow("rulebooks (4 subm + 3 down)", big_grid, coords.shape[0], t_nb, t_np))
+
+    rng = np.random.default_rng(seed)
+    occ = (rng.uniform(size=shape) < DECODE_FILL).astype(np.float32) * 0.9  # (D, H, W)
+    off = rng.uniform(-0.05, 0.05, size=(3, *shape)).astype(np.float32)  # (3, D, H, W)
+    t_nb = median_ms(lambda: decode_occupancy(occ, off, grid, 0.5), repeats)
+    t_np = median_ms(lambda: decode_numpy(occ, off, grid, 0.5), max(3, repeats // 5))
+    rows.append(BenchRow(f"decode ({DECODE_FILL:.0%} occupied)", big_grid, occ.size, t_nb, t_np))
     return rows
 
 
@@ -131,19 +159,25 @@ def format_table(rows: list[BenchRow]) -> str:
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(
-            f"{r.case:<28} {r.grid:<6} {r.size:>7} {r.numba_ms:>9.3f} {r.numpy_ms:>9.3f} "
-            f"{r.speedup:>7.1f}x"
+            f"{r.case:<28} {r.grid:<6} {r.size:>7} {r.numba_ms:>9.3f} {r.numpy_ms:>9.3f} {r.speedup:>7.1f}x"
         )
     return "\n".join(lines)
 
 
 @click.command("voxelize")
-@click.option("--repeats", "-r", default=20, show_default=True, help="timed calls per case")
+@click.option(
+    "--repeats",
+    "-r",
+    default=20,
+    show_default=True,
+    type=click.IntRange(min=1),
+    help="timed calls per case",
+)
 @click.option("--seed", default=0, show_default=True, help="seed of the synthetic clouds")
 @one_line_errors
 def voxelize_command(repeats: int, seed: int) -> None:
     """Time the numba voxelizer and rulebook builder against the numpy references."""
-    if repeats < 1:
-        raise MsdnetError("--repeats", f"must be >= 1, got {repeats}")
     click.echo(format_table(run_voxelize_bench(repeats, seed)))
-    click.echo("size: points (voxelize) or voxels (rulebooks); medians after one warm-up call")
+    click.echo(
+        "size: points (voxelize), voxels (rulebooks), grid cells (decode); medians after one warm-up call"
+    )

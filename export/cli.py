@@ -11,6 +11,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import click
 import numpy as np
@@ -19,6 +20,9 @@ from msdnet.runtime.artifact import MANIFEST
 from msdnet.runtime.datasets import DATASET_NAMES
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.config import ModelConfig
+
+if TYPE_CHECKING:
+    from msdnet.export.verify import VerifyReport
 
 EXIT_VERIFY_FAILED = 1
 
@@ -56,22 +60,80 @@ def _fsync_folder(folder: Path) -> None:
             os.close(fd)
 
 
-def publish(tmp: Path, out: Path) -> None:
-    """Move the finished folder ``tmp`` to ``out``, replacing a previous artifact there."""
+def check_out(out: Path) -> None:
+    """Refuse an ``--out`` that is a symlink, a file, or a non-empty folder that is no artifact."""
     if out.is_symlink():
         raise MsdnetError(out, "is a symlink; refusing to replace it")
+    if out.exists() and not out.is_dir():
+        raise MsdnetError(out, "exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not (out / MANIFEST).is_file():
+        raise MsdnetError(out, "folder is not empty and holds no manifest.json; refusing to replace it")
+
+
+def publish(tmp: Path, out: Path) -> None:
+    """Move the finished folder ``tmp`` to ``out``, replacing a previous artifact there."""
+    check_out(out)
     if not out.exists():
         os.replace(tmp, out)
         return
-    if not out.is_dir():
-        raise MsdnetError(out, "exists and is not a folder")
-    if any(out.iterdir()) and not (out / MANIFEST).is_file():
-        raise MsdnetError(out, "folder is not empty and holds no manifest.json; refusing to replace it")
     old = out.with_name(f".{out.name}.old")
     shutil.rmtree(old, ignore_errors=True)
     os.replace(out, old)
     os.replace(tmp, out)
     shutil.rmtree(old, ignore_errors=True)
+
+
+class VerificationFailed(Exception):
+    """``--verify`` measured errors beyond tolerance; ``report`` says which."""
+
+    def __init__(self, report: VerifyReport) -> None:
+        super().__init__("verification failed")
+        self.report = report
+
+
+def export_model(
+    model: Any,
+    kind: str,
+    cfg: ModelConfig,
+    out: Path,
+    source: str,
+    frames: list[np.ndarray] | None = None,
+    frames_source: str = "",
+    seed: int = 0,
+    threads: int | None = None,
+) -> tuple[dict[str, Any], VerifyReport | None]:
+    """Export ``model`` (a student or R2LDM torch module) into the artifact folder ``out``.
+
+    With ``frames`` ((N, C) float32 radar scans in ``cfg.radar_columns`` order) the artifact is
+    verified before it is published; :class:`VerificationFailed` leaves ``out`` unchanged.
+    Returns (manifest, verification report or None).
+    """
+    import torch
+
+    from msdnet.export.graphs import export_all
+    from msdnet.export.manifest import build_manifest, write_manifest
+    from msdnet.export.verify import verify_artifact
+
+    check_out(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    report = None
+    try:
+        torch.manual_seed(seed)
+        params, _ = export_all(model, kind, cfg, tmp)
+        manifest = build_manifest(tmp, kind, cfg, params, source)
+        write_manifest(tmp, manifest)
+        if frames is not None:
+            report = verify_artifact(model, kind, cfg, tmp, frames, frames_source, seed, threads)
+            if not report.ok:
+                raise VerificationFailed(report)
+            manifest["verification"] = report.to_dict()
+            write_manifest(tmp, manifest)
+        _fsync_folder(tmp)
+        publish(tmp, out)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return manifest, report
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -82,6 +144,7 @@ def publish(tmp: Path, out: Path) -> None:
 @click.option("--dataset", type=click.Choice(DATASET_NAMES), help="Layout of --data.")
 @click.option("--frames", type=click.IntRange(min=1), default=3, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed for --verify.")
+@click.option("--threads", type=click.IntRange(min=1), help="torch and onnxruntime threads.")
 @one_line_errors
 def main(
     checkpoint: Path,
@@ -91,42 +154,32 @@ def main(
     dataset: str | None,
     frames: int,
     seed: int,
+    threads: int | None,
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
     import torch
 
-    from msdnet.export.graphs import export_all
-    from msdnet.export.manifest import build_manifest, write_manifest
-    from msdnet.export.verify import verify_artifact
     from msdnet.training.checkpoint import load_checkpoint
 
+    if threads is not None:
+        torch.set_num_threads(threads)
     if data is not None and not verify:
         raise MsdnetError("--data", "only used with --verify")
+    check_out(out)
     model, cfg, state = load_checkpoint(checkpoint)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
-    frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else ([], "")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else (None, "")
     try:
-        torch.manual_seed(seed)
-        params, _ = export_all(model, state.kind, cfg, tmp)
-        manifest = build_manifest(tmp, state.kind, cfg, params, str(checkpoint))
-        write_manifest(tmp, manifest)
-        if verify:
-            report = verify_artifact(model, state.kind, cfg, tmp, frame_list, source, seed)
-            for line in report.lines():
-                click.echo(line)
-            if not report.ok:
-                click.echo(f"verification FAILED: {out} left unchanged", err=True)
-                raise SystemExit(EXIT_VERIFY_FAILED)
-            manifest["verification"] = report.to_dict()
-            write_manifest(tmp, manifest)
-        _fsync_folder(tmp)
-        publish(tmp, out)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        manifest, report = export_model(
+            model, state.kind, cfg, out, str(checkpoint), frame_list, source, seed, threads
+        )
+    except VerificationFailed as failed:
+        for line in failed.report.lines():
+            click.echo(line)
+        click.echo(f"verification FAILED: {out} left unchanged", err=True)
+        raise SystemExit(EXIT_VERIFY_FAILED) from None
+    for line in report.lines() if report else []:
+        click.echo(line)
     sizes = ", ".join(f"{g['file']} {g['bytes'] / 1e6:.2f} MB" for g in manifest["graphs"])
-    click.echo(
-        f"wrote {out}: {state.kind}, {manifest['parameters']['total']:,} parameters; {sizes}"
-    )
+    click.echo(f"wrote {out}: {state.kind}, {manifest['parameters']['total']:,} parameters; {sizes}")

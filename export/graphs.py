@@ -78,9 +78,7 @@ def tracing_points(cfg: ModelConfig, n: int = 400, seed: int = 0) -> np.ndarray:
     return pts.astype(np.float32)
 
 
-def example_inputs(
-    spec: GraphSpec, cfg: ModelConfig, enc: EncoderInput, seed: int = 0
-) -> tuple[Tensor, ...]:
+def example_inputs(spec: GraphSpec, cfg: ModelConfig, enc: EncoderInput, seed: int = 0) -> tuple[Tensor, ...]:
     """Inputs of one graph, in contract order: the encoder's from ``enc``, random BEV maps
     (1, C, H, W) and the first DDIM row of the default schedule for the others."""
     g = torch.Generator().manual_seed(seed)

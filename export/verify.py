@@ -146,12 +146,19 @@ def compare_points(a: np.ndarray, b: np.ndarray, grid: GridConfig) -> tuple[int,
 
 @torch.no_grad()
 def verify_artifact(
-    model: nn.Module, kind: str, cfg: ModelConfig, folder: Path, frames: list[np.ndarray],
-    source: str, seed: int = 0,
+    model: nn.Module,
+    kind: str,
+    cfg: ModelConfig,
+    folder: Path,
+    frames: list[np.ndarray],
+    source: str,
+    seed: int = 0,
+    threads: int | None = None,
 ) -> VerifyReport:
     """Compare ``model`` (torch) with the artifact in ``folder`` on ``frames``: list of (N, C)
-    float32 radar points in ``cfg.radar_columns`` order."""
-    pipe = Pipeline.from_dir(folder)
+    float32 radar points in ``cfg.radar_columns`` order. ``threads``: onnxruntime intra-op
+    threads (None: its default)."""
+    pipe = Pipeline.from_dir(folder, threads=threads)
     mods = dict((spec.file, (spec, mod.eval())) for spec, mod in graph_modules(model, kind))
     checks = {f: GraphCheck(f) for f in mods}
     coeffs = pipe.coefficients()  # (T_m, 3) the manifest's default schedule
@@ -192,9 +199,7 @@ def verify_artifact(
         run(onnx_spec.RECON_HEAD.file, {"features": x})
         # End to end, torch side: the model's own inference path, same noise and step count.
         occ, off = model.predict(enc, noise=torch.from_numpy(noise), sample_steps=len(coeffs))
-        ref_pts, _ = decode_occupancy(
-            occ[0].numpy(), off[0].numpy(), cfg.grid, pipe.artifact.threshold
-        )
+        ref_pts, _ = decode_occupancy(occ[0].numpy(), off[0].numpy(), cfg.grid, pipe.artifact.threshold)
         got = pipe(pts, seed=seed)
         differ, shift = compare_points(ref_pts, got.points, cfg.grid)
         e2e.frames += 1

@@ -5,8 +5,8 @@ centre plus its predicted offset, in linear-index order ``((z * H) + y) * W + x`
 Centre of voxel ``[z, y, x]`` per axis: ``lo + (index + 0.5) * voxel_size``; the centre and the
 offset are added in float64, then cast to float32. Confidence is the occupancy value.
 
-One pass over the dense grid (4.1M voxels on the paper grid) collects the hits into a growing
-index buffer; a second pass over the hits only writes the points.
+One branch-free pass over the dense grid (4.1M voxels on the paper grid) collects the linear
+indices of the hits; a second pass over the hits only writes the points.
 """
 
 from __future__ import annotations
@@ -28,16 +28,13 @@ def _decode_kernel(
     n = d * h * w
     occ = occupancy.reshape(n)  # (D*H*W,) in linear-index order
     off = offsets.reshape(3, n)  # (3, D*H*W) [dx, dy, dz]
-    hits = np.empty(1024, np.int64)
+    # Branch-free: the slot is written every time and kept only on a hit. Pages of the buffer past
+    # the last hit are never touched, so a sparse occupancy costs little memory.
+    hits = np.empty(n, np.int32)
     m = 0
     for i in range(n):
-        if occ[i] > threshold:
-            if m == hits.size:
-                grown = np.empty(hits.size * 2, np.int64)
-                grown[:m] = hits
-                hits = grown
-            hits[m] = i
-            m += 1
+        hits[m] = i
+        m += occ[i] > threshold
     points = np.empty((m, 3), np.float32)
     confidence = np.empty(m, np.float32)
     for t in range(m):
@@ -62,6 +59,8 @@ def decode_occupancy(
     confidence (M,) float32. Raises ValueError on mismatched shapes.
     """
     occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    if occ.size >= 2**31:
+        raise ValueError(f"occupancy of {occ.size} voxels exceeds the int32 index")
     off = np.ascontiguousarray(offsets, dtype=np.float32)
     if occ.shape != tuple(grid.shape_zyx):
         raise ValueError(f"occupancy must be {grid.shape_zyx} (D, H, W), got {occ.shape}")

@@ -48,9 +48,7 @@ def collect_inputs(inputs: tuple[Path, ...]) -> list[Path]:
     files: list[Path] = []
     for item in inputs:
         if item.is_dir():
-            found = sorted(
-                p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS
-            )
+            found = sorted(p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS)
             if not found:
                 raise MsdnetError(item, f"folder holds no point-cloud file ({' '.join(READ_FORMATS)})")
             files += found
@@ -113,10 +111,7 @@ def _summary(rows: list[dict[str, Any]], wall: float) -> tuple[str, int]:
     p_in = sum(r["points_in"] for r in rows if "error" not in r)
     p_out = sum(r["points_out"] for r in rows if "error" not in r)
     per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
-    lines = [
-        f"files: {ok} ok, {len(failed)} failed; points in {p_in}, out {p_out}; "
-        f"time {wall:.2f} s{per}"
-    ]
+    lines = [f"files: {ok} ok, {len(failed)} failed; points in {p_in}, out {p_out}; time {wall:.2f} s{per}"]
     lines += [f"  empty: {r['file']}: {'; '.join(r['notes'])}" for r in rows if r.get("notes")]
     lines += [f"  FAILED {r['error']}" for r in failed]
     return "\n".join(lines), (EXIT_SOME_FAILED if failed else 0)

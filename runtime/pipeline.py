@@ -81,9 +81,7 @@ class Pipeline:
         self._allocate(device_of(provider))
 
     @classmethod
-    def from_dir(
-        cls, path: str | Path, provider: str = "cpu", threads: int | None = None
-    ) -> Pipeline:
+    def from_dir(cls, path: str | Path, provider: str = "cpu", threads: int | None = None) -> Pipeline:
         """Load and check an artifact folder (``msdnet-export`` output) and open its sessions."""
         return cls(load_artifact(path), provider=provider, threads=threads)
 
@@ -125,6 +123,12 @@ class Pipeline:
             self._step_bind.append(b)
         self._head_bind = []
         head = self.sessions[onnx_spec.RECON_HEAD.file]
+        for out, arr in zip(head.get_outputs(), (self._occ, self._off), strict=True):
+            if [d if isinstance(d, int) else -1 for d in out.shape] != list(arr.shape):
+                raise MsdnetError(
+                    onnx_spec.RECON_HEAD.file,
+                    f"{out.name} shape {out.shape} != {list(arr.shape)} of the manifest grid",
+                )
         for src in (0, 1):
             b = head.io_binding()
             b.bind_ortvalue_input("features", self._x[src])
@@ -149,8 +153,7 @@ class Pipeline:
         if arr.ndim != 2 or arr.shape[1] != len(self.columns):
             raise MsdnetError(
                 None,
-                f"points must be (N, {len(self.columns)}) [{' '.join(self.columns)}], "
-                f"got shape {arr.shape}",
+                f"points must be (N, {len(self.columns)}) [{' '.join(self.columns)}], got shape {arr.shape}",
             )
         return np.ascontiguousarray(arr, dtype=np.float32)
 

@@ -20,10 +20,13 @@ Rule semantics (torch training and the ONNX graph both rely on them):
   ``rules[o, k]`` reads the input at ``o * stride - padding + (kz, ky, kx)``. Output shape per axis:
   ``floor((n + 2 * padding - 3) / stride) + 1``.
 
-Algorithm, O(V): voxels sharing ``(b, z, y)`` form a contiguous "row" of the sorted table. For
-each of the 9 ``(kz, ky)`` row offsets, one merge pass walks output rows and input rows together
-(the input row an output row needs increases with it), scatters the matching input row into a
-scratch line indexed by x and reads the 3 ``kx`` taps from it. No dense grid is allocated.
+Algorithm, O(V): voxels sharing ``(b, z, y)`` form a contiguous "row" of the sorted table. The
+input row an output row needs through a ``(kz, ky)`` offset only grows with the output row, so
+one pointer per offset walks the input rows (a merge, no search). The matching input row is
+scattered into a line indexed by x, and the 3 ``kx`` taps of every output voxel of the row are
+read from it. Strided outputs are found the same way: candidate output rows from the input rows
+(radix-sorted), then per output row the union of the x' its input rows reach. No dense grid is
+allocated.
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ from numba import njit
 
 from msdnet.runtime.voxelize import bit_length, radix_sort
 
-KERNEL_TAPS = 27  # 3 x 3 x 3
+KERNEL_TAPS = 27  # 3 x 3 x 3 taps: the width of every rules table
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,7 +102,7 @@ def _rules_kernel(
     d_in, h_in, w_in = in_shape[0], in_shape[1], in_shape[2]
     n_in = in_coords.shape[0]
     n_out = out_coords.shape[0]
-    rules = np.empty((n_out, 27), np.int32)
+    rules = np.empty((n_out, KERNEL_TAPS), np.int32)
     if n_in == 0:
         rules[:] = n_in
         return rules
@@ -198,7 +201,6 @@ def _down_coords_kernel(
         zo = (rows[t] // h_out) % d_out
         yo = rows[t] % h_out
         cnt = 0
-        lo, hi = w_out, -1
         for kk in range(9):
             zi = zo * stride - padding + kk // 3
             yi = yo * stride - padding + kk % 3
@@ -216,27 +218,18 @@ def _down_coords_kernel(
                         mark[xo] = True
                         xs[cnt] = xo
                         cnt += 1
-            if in_starts[p + 1] > in_starts[p]:
-                lo = min(lo, x_first[in_coords[in_starts[p], 3]])
-                hi = max(hi, x_last[in_coords[in_starts[p + 1] - 1, 3]])
-        if hi - lo + 1 <= 4 * cnt:  # dense row: read the marks in order
-            for xo in range(lo, hi + 1):
-                if mark[xo]:
-                    out[n_out, 0], out[n_out, 1], out[n_out, 2], out[n_out, 3] = b, zo, yo, xo
-                    n_out += 1
-                    mark[xo] = False
-        else:  # sparse row: sort the few x' (a union of up to 9 sorted runs)
-            for a in range(1, cnt):
-                v = xs[a]
-                q = a - 1
-                while q >= 0 and xs[q] > v:
-                    xs[q + 1] = xs[q]
-                    q -= 1
-                xs[q + 1] = v
-            for a in range(cnt):
-                out[n_out, 0], out[n_out, 1], out[n_out, 2], out[n_out, 3] = b, zo, yo, xs[a]
-                n_out += 1
-                mark[xs[a]] = False
+        # Sort the x' (a union of up to 9 ascending runs: insertion sort is O(9 cnt)), emit.
+        for a in range(1, cnt):
+            v = xs[a]
+            q = a - 1
+            while q >= 0 and xs[q] > v:
+                xs[q + 1] = xs[q]
+                q -= 1
+            xs[q + 1] = v
+        for a in range(cnt):
+            out[n_out, 0], out[n_out, 1], out[n_out, 2], out[n_out, 3] = b, zo, yo, xs[a]
+            n_out += 1
+            mark[xs[a]] = False
     return out[:n_out].copy()
 
 

@@ -37,8 +37,7 @@ def resolve_providers(provider: str) -> list[str]:
     if name not in PROVIDERS or name not in have:
         raise MsdnetError(
             "provider",
-            f"{provider!r} is not available in onnxruntime {ort.__version__} "
-            f"(available: {', '.join(have)})",
+            f"{provider!r} is not available in onnxruntime {ort.__version__} (available: {', '.join(have)})",
         )
     chain = [PROVIDERS[name]]
     if name == "tensorrt" and "cuda" in have:

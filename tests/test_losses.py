@@ -110,3 +110,8 @@ def test_voxel_targets_means_and_centres_per_scale():
     # 1/4 scale: one 4 m cell (reaching past z = 2), centre (2, 2, 2).
     assert occ4.shape == (1, 1, 1) and occ4[0, 0, 0] == 1
     np.testing.assert_allclose(off4[:, 0, 0, 0], pts[:4].mean(axis=0) - 2.0, atol=1e-6)
+    # An empty cloud gives all-empty targets of the same shapes.
+    for (occ, off), shape in zip(
+        voxel_targets(np.zeros((0, 3), np.float32), grid), scale_shapes(grid), strict=True
+    ):
+        assert occ.shape == shape and off.shape == (3, *shape) and not occ.any() and not off.any()

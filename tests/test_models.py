@@ -21,6 +21,16 @@ ASTYX_TINY = dataclasses.replace(
 )
 
 
+@pytest.fixture(autouse=True, scope="module")
+def one_torch_thread():
+    """Tiny tensors: one intra-op thread is fastest, and on the shared 2 cores a second
+    thread's spin-waiting cost ~10x the CPU time of these tests."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(old)
+
+
 def _synthetic_batch(cfg: ModelConfig, seed: int = 0) -> Batch:
     rng = np.random.default_rng(seed)
     lo = np.asarray(cfg.grid.point_range[:3])

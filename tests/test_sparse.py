@@ -101,6 +101,7 @@ def test_encoder_shapes_and_empty_cloud():
     assert not torch.allclose(out[0], out[1])
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # the TorchScript exporter (dynamo=False)
 def test_encoder_onnx_matches_torch_on_other_voxel_count(tmp_path):
     ort = pytest.importorskip("onnxruntime")
     cfg = MODEL_PRESETS["tiny"]

@@ -83,9 +83,7 @@ class Batch:
         return Batch(self.radar.to(device), self.lidar.to(device), targets, self.batch_size)
 
 
-def make_encoder_input(
-    clouds: Sequence[np.ndarray], grid: GridConfig, max_voxels: int
-) -> EncoderInput:
+def make_encoder_input(clouds: Sequence[np.ndarray], grid: GridConfig, max_voxels: int) -> EncoderInput:
     """clouds: list of (N_i, C) float32 point arrays [x, y, z, ...] (same C) -> EncoderInput.
 
     Voxelizes each cloud with ``msdnet.runtime.voxelize`` (per-voxel means, cap ``max_voxels``),

@@ -19,7 +19,7 @@ import torch
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import collate
-from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
+from msdnet.training.checkpoint import config_to_dict, load_checkpoint, read_checkpoint
 from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, ModelConfig, TrainConfig
 from msdnet.training.data import DATASETS, config_for_dataset, make_splits
 from msdnet.training.distributed import DistInfo, init_distributed, shutdown_distributed
@@ -39,11 +39,9 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
     if tcfg != cfg:
-        raise MsdnetError(
-            folder,
-            f"teacher was trained with preset {tcfg.preset} and radar columns "
-            f"{','.join(tcfg.radar_columns)}; this run has {cfg.preset} and {','.join(cfg.radar_columns)}",
-        )
+        ours, theirs = config_to_dict(cfg), config_to_dict(tcfg)
+        fields = ", ".join(f"{k} {theirs[k]!r} (here {ours[k]!r})" for k in ours if ours[k] != theirs[k])
+        raise MsdnetError(folder, f"teacher config differs from this run: {fields}"[:300])
     return load_checkpoint(folder)[0]
 
 

@@ -82,9 +82,7 @@ COLUMN_NORMS: dict[str, tuple[float, float]] = {
 }
 
 
-def default_feature_norm(
-    columns: tuple[str, ...], grid: GridConfig
-) -> tuple[tuple[float, float], ...]:
+def default_feature_norm(columns: tuple[str, ...], grid: GridConfig) -> tuple[tuple[float, float], ...]:
     """(shift, scale) per column: x, y, z map the grid range onto [-1, 1]; others COLUMN_NORMS
     (unknown names: identity)."""
     lo, hi = grid.point_range[:3], grid.point_range[3:]

@@ -18,7 +18,8 @@ import json
 import math
 import random
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -225,6 +226,28 @@ def _resume_state(
     return state
 
 
+@contextmanager
+def deterministic_algorithms() -> Iterator[None]:
+    """Deterministic torch kernels (e.g. the index-accumulate backward of the rulebook gather)
+    while training, so that equal seeds give equal weights; restored afterwards.
+
+    Unfilled memory is left unfilled (torch fills it with NaN by default in this mode, which
+    costs ~10 % of a step here); measured on the lite teacher, the step time is unchanged.
+    """
+    saved = (
+        torch.are_deterministic_algorithms_enabled(),
+        torch.is_deterministic_algorithms_warn_only_enabled(),
+        torch.utils.deterministic.fill_uninitialized_memory,
+    )
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    torch.utils.deterministic.fill_uninitialized_memory = False
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(saved[0], warn_only=saved[1])
+        torch.utils.deterministic.fill_uninitialized_memory = saved[2]
+
+
 def train(
     model: torch.nn.Module,
     cfg: ModelConfig,
@@ -241,6 +264,21 @@ def train(
     Returns the state after the last epoch run; writes checkpoints and the log on rank 0.
     Raises NonFiniteLoss (all ranks) at the first NaN / Inf term.
     """
+    with deterministic_algorithms():
+        return _train(model, cfg, train_cfg, train_set, val_set, spec, collate_fn, info, metrics_fn)
+
+
+def _train(
+    model: torch.nn.Module,
+    cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    train_set: Dataset,
+    val_set: Dataset,
+    spec: RunSpec,
+    collate_fn: Callable[[Sequence[Any]], Any],
+    info: DistInfo | None = None,
+    metrics_fn: MetricsFn | None = None,
+) -> CheckpointState:
     info = info or DistInfo()
     device = torch.device(spec.device)
     model.to(device)

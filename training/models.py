@@ -217,8 +217,9 @@ class R2LDMModel(_FrozenTeacherMixin):
 
 
 def build_model(kind: str, cfg: ModelConfig, teacher: TeacherModel | None = None) -> nn.Module:
-    """kind: "teacher" | "student" | "r2ldm". The student and R2LDM take the trained teacher
-    (frozen here); without one they get a fresh teacher whose weights a checkpoint must load."""
+    """kind: "teacher" | "student" | "r2ldm". The student and R2LDM take the trained teacher and
+    freeze it in place (``requires_grad_(False)``, eval mode); without one they get a fresh
+    teacher whose weights a checkpoint must load (their checkpoints carry the teacher's)."""
     if kind == "teacher":
         return TeacherModel(cfg)
     if kind == "student":

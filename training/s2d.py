@@ -53,9 +53,7 @@ class S2D(nn.Module):
         super().__init__()
         c, w, n = cfg.bev_channels, cfg.s2d_channels, cfg.s2d_blocks
         self.stem = nn.Sequential(conv_norm_relu(c, w), *[ResBlock2d(w) for _ in range(n)])
-        self.down = nn.Sequential(
-            conv_norm_relu(w, 2 * w, stride=2), *[ResBlock2d(2 * w) for _ in range(n)]
-        )
+        self.down = nn.Sequential(conv_norm_relu(w, 2 * w, stride=2), *[ResBlock2d(2 * w) for _ in range(n)])
         self.up = nn.Sequential(nn.ConvTranspose2d(2 * w, w, 2, stride=2), group_norm(w), nn.ReLU())
         self.fuse = conv_norm_relu(2 * w, w)
         self.out = nn.Conv2d(w, c, 1)

@@ -44,22 +44,16 @@ def voxel_targets(points: np.ndarray, grid: GridConfig) -> list[tuple[np.ndarray
     for k, (ds, hs, ws) in zip(SCALE_FACTORS, scale_shapes(grid), strict=True):
         c = vox.coords.astype(np.int64) // k  # (V, 3) [z, y, x] coarse indices
         lin = (c[:, 0] * hs + c[:, 1]) * ws + c[:, 2]  # (V,) coarse linear index
-        n_cells = ds * hs * ws
-        cnt = np.bincount(lin, weights=counts, minlength=n_cells)  # (cells,) points per cell
-        occ = cnt > 0
-        off = np.zeros((3, n_cells), np.float64)  # [dx, dy, dz] per cell
-        cells = np.flatnonzero(occ)
+        cells, inv = np.unique(lin, return_inverse=True)  # (V_k,) occupied cells, (V,) -> cell
+        cnt = np.bincount(inv, weights=counts)  # (V_k,) points per occupied cell
+        mean = np.stack([np.bincount(inv, weights=sums[:, a]) for a in range(3)], axis=1) / cnt[:, None]
         zyx = np.stack(np.unravel_index(cells, (ds, hs, ws)), axis=1)  # (V_k, 3) [z, y, x]
         centres = lo + (zyx[:, ::-1] + 0.5) * size * k  # (V_k, 3) [x, y, z] metres
-        for a in range(3):
-            mean = np.bincount(lin, weights=sums[:, a], minlength=n_cells)[cells] / cnt[cells]
-            off[a, cells] = mean - centres[:, a]
-        out.append(
-            (
-                occ.reshape(ds, hs, ws).astype(np.float32),
-                off.reshape(3, ds, hs, ws).astype(np.float32),
-            )
-        )
+        occ = np.zeros(ds * hs * ws, np.float32)
+        occ[cells] = 1.0
+        off = np.zeros((3, ds * hs * ws), np.float32)  # [dx, dy, dz] per cell
+        off[:, cells] = (mean - centres).T
+        out.append((occ.reshape(ds, hs, ws), off.reshape(3, ds, hs, ws)))
     return out
 
 

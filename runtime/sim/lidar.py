@@ -24,7 +24,7 @@ from msdnet.runtime.sim.raycast import GROUND, MAT, build_sectors, cast_rays
 class LidarConfig:
     """Scanner geometry and noise."""
 
-    azimuth_step_deg: float = 0.2  # degrees between columns (360 degrees scanned)
+    azimuth_step_deg: float = 0.125  # degrees between columns (360 degrees scanned)
     max_range: float = 120.0  # m, farthest return
     min_range: float = 1.0  # m, nearest return
     range_noise: float = 0.02  # m, 1-sigma Gaussian range noise
@@ -59,13 +59,14 @@ def scan(
     """One sweep. prims: (P, N_COLS) scene at this time; lidar_to_world: (4, 4);
     dirs_lidar: (R, 3) from :func:`beam_directions`. Returns (N, 4) float32 [x, y, z, intensity]
     in the LiDAR frame."""
-    origin = lidar_to_world[:3, 3].copy()
-    dirs_world = dirs_lidar @ lidar_to_world[:3, :3].T  # (R, 3)
+    origin = np.ascontiguousarray(lidar_to_world[:3, 3])
+    rot = np.ascontiguousarray(lidar_to_world[:3, :3])
     start, items, near = build_sectors(prims, origin, cfg.n_sectors, cfg.max_range)
     t, hit, cos_i = cast_rays(
         prims,
         origin,
-        np.ascontiguousarray(dirs_world),
+        rot,
+        dirs_lidar,
         cfg.max_range,
         start,
         items,

@@ -39,20 +39,23 @@ class Material:
     radar_lobe_deg: float  # width (1/e) of the specular lobe, degrees of incidence
     radar_pass: float  # probability a radar ray passes a mesh surface
     radar_free_path: float  # m, mean free path of the radar wave inside a volumetric material
+    radar_glint_density: float  # share of GLINT_CELL cells of the surface holding a glint
 
 
 MATERIALS: tuple[Material, ...] = (
-    Material("asphalt", 0.22, 0.0, 0.0, -22.0, -40.0, 3.0, 0.0, 0.0),
-    Material("concrete", 0.35, 0.0, 0.0, -6.0, 4.0, 4.0, 0.0, 0.0),
-    Material("facade", 0.45, 0.0, 0.0, 0.0, 8.0, 5.0, 0.0, 0.0),
-    Material("glass", 0.08, 0.0, 0.0, -5.0, 14.0, 3.0, 0.0, 0.0),
-    Material("metal", 0.55, 0.0, 0.0, 6.0, 30.0, 8.0, 0.0, 0.0),
-    Material("vegetation", 0.40, 0.0, 0.7, -3.0, -60.0, 1.0, 0.0, 2.0),
-    Material("wood", 0.35, 0.0, 0.0, -3.0, 2.0, 6.0, 0.0, 0.0),
-    Material("human", 0.30, 0.0, 0.0, -7.0, 3.0, 10.0, 0.0, 0.0),
-    Material("fence", 0.50, 0.55, 0.0, 2.0, 16.0, 4.0, 0.35, 0.0),
-    Material("sign", 0.98, 0.0, 0.0, 6.0, 30.0, 5.0, 0.0, 0.0),
+    Material("asphalt", 0.22, 0.0, 0.0, -7.5, -30.5, 3.0, 0.0, 0.0, 0.0),
+    Material("concrete", 0.35, 0.0, 0.0, 3.5, 13.5, 4.0, 0.0, 0.0, 0.02),
+    Material("facade", 0.45, 0.0, 0.0, 9.5, 17.5, 5.0, 0.0, 0.0, 0.08),
+    Material("glass", 0.08, 0.0, 0.0, 4.5, 23.5, 3.0, 0.0, 0.0, 0.08),
+    Material("metal", 0.55, 0.0, 0.0, 15.5, 39.5, 8.0, 0.0, 0.0, 0.3),
+    Material("vegetation", 0.4, 0.0, 0.7, 6.5, -50.5, 1.0, 0.0, 2.0, 0.02),
+    Material("wood", 0.35, 0.0, 0.0, 6.5, 11.5, 6.0, 0.0, 0.0, 0.0),
+    Material("human", 0.3, 0.0, 0.0, 2.5, 12.5, 10.0, 0.0, 0.0, 0.0),
+    Material("fence", 0.5, 0.55, 0.0, 11.5, 25.5, 4.0, 0.35, 0.0, 0.2),
+    Material("sign", 0.98, 0.0, 0.0, 15.5, 39.5, 5.0, 0.0, 0.0, 0.0),
 )
+
+GLINT_CELL = 0.6  # m, edge of the world-fixed cubes that may hold a glint (radar.py, step 2)
 
 N_MATERIALS = len(MATERIALS)
 

@@ -18,7 +18,7 @@ deterministic and independent of thread scheduling.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 # primitive kinds
 BOX = 0
@@ -241,10 +241,11 @@ def _hit_ellipsoid(p, ox, oy, oz, dx, dy, dz):
     return t0, t1, nx / nn, ny / nn, nz / nn
 
 
-@njit(parallel=True, cache=True)
+@njit(cache=True)
 def cast_rays(
     prims: np.ndarray,
     origin: np.ndarray,
+    rot: np.ndarray,
     dirs: np.ndarray,
     max_range: float,
     start: np.ndarray,
@@ -256,7 +257,8 @@ def cast_rays(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cast rays from one origin; first hit per ray.
 
-    prims: (P, N_COLS); origin: (3,) world; dirs: (R, 3) unit world directions;
+    prims: (P, N_COLS); origin: (3,) world; rot: (3, 3) sensor-to-world rotation;
+    dirs: (R, 3) unit directions in the sensor frame (rotated by ``rot`` here);
     start / items / near: from :func:`build_sectors` for this origin;
     mesh_pass, free_path: (N_MATERIALS,) per-material pass probability and free path (m).
     Returns ``t`` (R,) float64 hit distance (inf when none), ``hit`` (R,) int64 primitive index
@@ -269,8 +271,11 @@ def cast_rays(
     hit_out = np.full(n_rays, NO_HIT, np.int64)
     cos_out = np.zeros(n_rays)
     ox, oy, oz = origin[0], origin[1], origin[2]
-    for r in prange(n_rays):
-        dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+    for r in range(n_rays):
+        sx, sy, sz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        dx = rot[0, 0] * sx + rot[0, 1] * sy + rot[0, 2] * sz
+        dy = rot[1, 0] * sx + rot[1, 1] * sy + rot[1, 2] * sz
+        dz = rot[2, 0] * sx + rot[2, 1] * sy + rot[2, 2] * sz
         horiz = np.sqrt(dx * dx + dy * dy)
         best = max_range
         best_i = NO_HIT

@@ -6,7 +6,8 @@ Frames (all right-handed, metres):
 - radar: 2.5 m ahead of and 1.15 m below the LiDAR (radar-to-LiDAR translation
   (2.50, 0.06, -1.15) m, like VoD's (2.514, 0.061, -1.153)), turned by a fraction of a degree;
 - camera: KITTI camera axes (x right, y down, z forward), pitched 6.8 degrees up (as VoD's
-  camera is with respect to its LiDAR), near the LiDAR. ``Tr_velo_to_cam`` of each calib file maps that sensor's frame into the camera frame.
+  camera is with respect to its LiDAR), near the LiDAR.
+``Tr_velo_to_cam`` of each calib file maps that sensor's frame into the camera frame.
 """
 
 from __future__ import annotations

@@ -113,7 +113,7 @@ def _block_side(rows: _Rows, rng, corner, t, n, length, grid: StreetGrid, kerb: 
         if blen < 3.0:
             break
         depth = float(rng.uniform(8.0, 18.0))
-        height = float(rng.uniform(6.0, 22.0))
+        height = float(rng.uniform(4.0, 12.0) if rng.random() < 0.9 else rng.uniform(12.0, 18.0))
         mat = mt.GLASS if rng.random() < 0.08 else mt.FACADE
         centre = corner + t * (u + blen / 2) + n * (line + depth / 2)
         rows.box(centre, 0.0, height, blen / 2, depth / 2, yaw, mat)
@@ -129,7 +129,7 @@ def _block_side(rows: _Rows, rng, corner, t, n, length, grid: StreetGrid, kerb: 
             rows.cyl(p, kerb, top, 0.04, mt.METAL)
             rows.box(p - n * 0.03, top - 0.6, top, 0.3, 0.015, yaw, mt.SIGN)
         u += float(rng.uniform(15.0, 35.0))
-    if rng.random() < 0.5:  # tree-lined side
+    if rng.random() < 0.7:  # tree-lined side
         u = float(rng.uniform(2.0, 10.0))
         while u < length - 2.0:
             p = corner + t * u + n * float(rng.uniform(0.8, 1.4))
@@ -183,9 +183,9 @@ def _movers(rows: _Rows, rng, grid: StreetGrid, traj: Trajectory, busy: float) -
     lane = 0.45 * grid.road_half
     n_total = 0
     counts = {
-        "car": rng.poisson(busy * (1.0 + 0.25 * duration)),
-        "cyclist": rng.poisson(busy * (2.0 + 0.4 * duration)),
-        "pedestrian": rng.poisson(busy * (1.5 + 0.3 * duration)),
+        "car": rng.poisson(busy * (2.5 + 0.6 * duration)),
+        "cyclist": rng.poisson(busy * (5.0 + 1.0 * duration)),
+        "pedestrian": rng.poisson(busy * (3.0 + 0.5 * duration)),
     }
     for kind, count in counts.items():
         for _ in range(int(count)):

@@ -62,18 +62,17 @@ class SequenceSim:
         cruise = float(rng.uniform(4.0, 9.0))
         busy = float(rng.uniform(0.7, 1.4))
         dist = cruise * n_frames * 0.1
-        block_hi = float(np.clip(0.2 * dist, 40.0, 110.0)) if loop else 110.0
-        block = (min(40.0, block_hi), block_hi) if loop else (45.0, 110.0)
+        # loops: blocks small enough that circling one fits in the planned distance
+        block = (35.0, float(np.clip(0.12 * dist, 40.0, 110.0))) if loop else (45.0, 110.0)
         grid = make_grid(rng, block, dist + 250.0)
         self.traj: Trajectory = drive(rng, grid, n_frames, loop, cruise)
         self.scene: Scene = build_scene(rng, grid, self.traj, moving, busy)
         yaw = float(rng.uniform(-np.pi, np.pi))
         self.utm_from_world = rig.homogeneous(
-            rig.rot_z(yaw), (UTM_ORIGIN[0] + rng.uniform(-2e3, 2e3), UTM_ORIGIN[1] + rng.uniform(-2e3, 2e3), 0.0)
+            rig.rot_z(yaw),
+            (UTM_ORIGIN[0] + rng.uniform(-2e3, 2e3), UTM_ORIGIN[1] + rng.uniform(-2e3, 2e3), 0.0),
         )
-        self.info = SequenceInfo(
-            index, loop, moving, cruise, self.scene.n_moving, len(self.scene.prims)
-        )
+        self.info = SequenceInfo(index, loop, moving, cruise, self.scene.n_moving, len(self.scene.prims))
         self.lidar_cfg = lidar_cfg or lidar.LidarConfig()
         self.radar = radar.RadarSim(radar_cfg or radar.RadarConfig())
         self.lidar_dirs = lidar.beam_directions(self.lidar_cfg)

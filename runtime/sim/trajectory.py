@@ -157,9 +157,7 @@ def _sample_path(
     return np.concatenate(xy_parts), np.unwrap(np.concatenate(yaw_parts)), np.concatenate(kap_parts)
 
 
-def drive(
-    rng: np.random.Generator, grid: StreetGrid, n_frames: int, loop: bool, cruise: float
-) -> Trajectory:
+def drive(rng: np.random.Generator, grid: StreetGrid, n_frames: int, loop: bool, cruise: float) -> Trajectory:
     """Plan a route and drive it: ``n_frames`` poses at 10 Hz.
 
     Speed: ``cruise`` m/s on straights, at most sqrt(2.0 m/s^2 * R) in turns, accelerating at
@@ -201,7 +199,9 @@ def drive(
     sf = np.interp(frame_t, t_knots, s_knots)  # (M,) arc length at each frame
     idx = np.clip(np.round(sf / ds).astype(np.int64), 0, len(xy) - 1)
     w = np.interp(sf, s, np.arange(len(s)))  # fractional sample index
-    pos = np.stack([np.interp(w, np.arange(len(s)), xy[:, 0]), np.interp(w, np.arange(len(s)), xy[:, 1])], axis=1)
+    pos = np.stack(
+        [np.interp(w, np.arange(len(s)), xy[:, 0]), np.interp(w, np.arange(len(s)), xy[:, 1])], axis=1
+    )
     heading = np.interp(w, np.arange(len(s)), yaw)
     moving = np.ones(n_frames, bool)
     for j, dwell in stops:  # standing still during a dwell

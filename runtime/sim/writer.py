@@ -48,8 +48,7 @@ def check_capacity(n_sequences: int, n_frames: int) -> None:
     if last > MAX_FRAME_ID:
         raise MsdnetError(
             None,
-            f"{n_sequences} sequences x {n_frames} frames need frame id {last}, "
-            f"more than {MAX_FRAME_ID}",
+            f"{n_sequences} sequences x {n_frames} frames need frame id {last}, more than {MAX_FRAME_ID}",
         )
 
 
@@ -76,7 +75,8 @@ def _write_bytes(path: Path, data: bytes) -> None:
 
 
 def _row(values: np.ndarray) -> str:
-    return " ".join(f"{v:.12f}" for v in np.asarray(values, dtype=np.float64).ravel())
+    flat = np.asarray(values, dtype=np.float64).ravel() + 0.0  # + 0.0: no "-0.000"
+    return " ".join(f"{v:.12f}" for v in flat)
 
 
 def calib_text(sensor_to_camera: np.ndarray) -> str:

@@ -1,0 +1,105 @@
+"""``msdnet-bench latency``: the click command around :func:`msdnet.benchmarks.latency.run_latency`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from msdnet.runtime.datasets import DATASET_NAMES
+from msdnet.runtime.errors import MsdnetError, one_line_errors
+
+
+def _int_list(option: str, text: str | None) -> tuple[int, ...] | None:
+    """ "1,3,10" -> (1, 3, 10); MsdnetError naming ``option`` on anything else."""
+    if text is None:
+        return None
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise MsdnetError(option, f"expected comma-separated integers, got {text!r}") from None
+    if not values or min(values) < 1:
+        raise MsdnetError(option, f"expected integers >= 1, got {text!r}")
+    return values
+
+
+@click.command("latency", context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for results.*")
+@click.option("--preset", type=click.Choice(["tiny", "lite", "paper"]), help="Random models [lite].")
+@click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
+@click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
+@click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
+@click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
+@click.option("--repeats", type=click.IntRange(min=1), help="Timed MSDNet frames [30; quick 3].")
+@click.option("--warmup", type=click.IntRange(min=0), help="Untimed frames first [3; quick 1].")
+@click.option("--r2ldm-repeats", type=click.IntRange(min=1), help="Timed R2LDM frames [5; quick 1].")
+@click.option("--steps", "steps_text", help="Steps sweep, e.g. 1,3,10,25,50,100 (+ Table III).")
+@click.option("--points", "points_text", help="Input-size sweep, e.g. 1000,10000,100000.")
+@click.option(
+    "--target-points",
+    type=click.IntRange(min=1),
+    default=20000,
+    show_default=True,
+    help="Random weights: threshold leaving about this many decoded points.",
+)
+@click.option("--int8/--no-int8", default=True, show_default=True, help="Measure an INT8 step graph.")
+@click.option("--data", type=click.Path(path_type=Path), help="Dataset root (Table III quality).")
+@click.option("--dataset", type=click.Choice(DATASET_NAMES), help="Layout of --data.")
+@click.option("--frames", type=click.IntRange(min=1), help="Frames scored per T_m [10; quick 1].")
+@click.option("--seed", type=int, default=0, show_default=True, help="Weights, inputs and noise.")
+@click.option("--quick", is_flag=True, help="Tiny preset, few repetitions, short sweeps (seconds).")
+@one_line_errors
+def latency_command(
+    out: Path,
+    preset: str | None,
+    model: Path | None,
+    r2ldm: Path | None,
+    provider: str,
+    threads: int | None,
+    repeats: int | None,
+    warmup: int | None,
+    r2ldm_repeats: int | None,
+    steps_text: str | None,
+    points_text: str | None,
+    target_points: int,
+    int8: bool,
+    data: Path | None,
+    dataset: str | None,
+    frames: int | None,
+    seed: int,
+    quick: bool,
+) -> None:
+    """Per-stage latency, Tables III and IV, ratios and scaling; writes results.json/.md + plots."""
+    from msdnet.benchmarks.latency import LatencyConfig, quick_config, run_latency
+    from msdnet.runtime.session import resolve_providers
+
+    resolve_providers(provider)
+    given = {
+        "preset": preset,
+        "model": model,
+        "r2ldm": r2ldm,
+        "provider": provider,
+        "threads": threads,
+        "repeats": repeats,
+        "warmup": warmup,
+        "r2ldm_repeats": r2ldm_repeats,
+        "steps": _int_list("--steps", steps_text),
+        "point_counts": _int_list("--points", points_text),
+        "target_points": target_points,
+        "int8": int8,
+        "data": data,
+        "dataset": dataset,
+        "frames": frames,
+        "seed": seed,
+    }
+    kw = {k: v for k, v in given.items() if v is not None}
+    if quick and model is not None:
+        kw.setdefault("preset", None)  # the model fixes its own preset
+    cfg = quick_config(out, **kw) if quick else LatencyConfig(out=out, **kw)
+    res = run_latency(cfg, log=lambda s: click.echo(s, err=True))
+    for g in res["goals"]:
+        met = {True: "met", False: "NOT met", None: "n/a"}[g["met"]]
+        value = g["measured"]
+        shown = f"{value:.3g}" if isinstance(value, float) else str(value)
+        click.echo(f"{g['goal']:<48} {shown:>10}  (target {g['target']}: {met})")
+    click.echo(f"wrote {out / 'results.json'}, {out / 'results.md'} and plots")

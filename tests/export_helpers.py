@@ -1,0 +1,75 @@
+"""Tiny random-initialised checkpoints and exported artifacts for the export/runtime tests.
+
+The head's occupancy prior is set to 0.5 so an untrained tiny model still outputs thousands of
+points (about half of the 10 240 tiny-grid voxels), which makes point comparisons meaningful.
+Artifacts are built once per (kind, dataset) and per test process.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+
+import torch
+
+from msdnet.export.graphs import export_all
+from msdnet.export.manifest import build_manifest, write_manifest
+from msdnet.training.checkpoint import CheckpointState, save_checkpoint
+from msdnet.training.config import MODEL_PRESETS, ModelConfig, TrainConfig
+from msdnet.training.data import config_for_dataset
+from msdnet.training.models import build_model
+
+_CACHE: dict[tuple[str, str], Path] = {}
+
+
+@contextlib.contextmanager
+def one_torch_thread() -> Iterator[None]:
+    """torch's OpenMP pool on a shared 2-core machine costs ~1000x on tiny ops: use one thread."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def tiny_config(dataset: str = "vod") -> ModelConfig:
+    """The tiny preset with the dataset's radar columns and an occupancy prior of 0.5."""
+    cfg = config_for_dataset(MODEL_PRESETS["tiny"], dataset)
+    return dataclasses.replace(cfg, occupancy_prior=0.5)
+
+
+def make_checkpoint(folder: Path, kind: str, dataset: str = "vod", seed: int = 0) -> Path:
+    """A random-initialised tiny ``kind`` checkpoint at ``folder``."""
+    torch.manual_seed(seed)
+    cfg = tiny_config(dataset)
+    with one_torch_thread():
+        model = build_model(kind, cfg)
+    save_checkpoint(folder, model, cfg, CheckpointState(kind=kind, train=TrainConfig(), epochs=1))
+    return folder
+
+
+def make_artifact(root: Path, kind: str, dataset: str = "vod") -> Path:
+    """An exported tiny artifact (no verification), built once per process; ``root`` is a
+    session-scoped temporary folder."""
+    key = (kind, dataset)
+    if key not in _CACHE:
+        torch.manual_seed(0)
+        cfg = tiny_config(dataset)
+        model = build_model(kind, cfg).eval()
+        folder = root / f"artifact-{kind}-{dataset}"
+        folder.mkdir(parents=True)
+        with one_torch_thread():
+            params, _ = export_all(model, kind, cfg, folder)
+        write_manifest(folder, build_manifest(folder, kind, cfg, params, "tests"))
+        _CACHE[key] = folder
+    return _CACHE[key]
+
+
+def copy_artifact(src: Path, dst: Path) -> Path:
+    """A private copy of an artifact folder, to tamper with."""
+    shutil.copytree(src, dst)
+    return dst

@@ -1,0 +1,146 @@
+"""``msdnet-bench latency``: the quick run end to end (tiny preset) and its building blocks."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+from click.testing import CliRunner
+from export_helpers import make_artifact
+
+from msdnet.benchmarks.latency_cli import latency_command
+from msdnet.benchmarks.latency_models import int8_artifact
+from msdnet.benchmarks.latency_quality import load_frames, quality_by_steps
+from msdnet.benchmarks.latency_timing import (
+    STAGES,
+    calibrate_threshold,
+    plain_run,
+    synthetic_radar,
+)
+from msdnet.runtime import onnx_spec
+from msdnet.runtime.artifact import load_artifact
+from msdnet.runtime.pipeline import Pipeline
+
+RATIOS = (
+    "msdnet_over_r2ldm",
+    "onnx_over_torch",
+    "voxelize_numba_speedup",
+    "loop_overhead_share",
+    "step_flops_over_peak",
+)
+
+
+@pytest.fixture(scope="module")
+def quick(tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("latency") / "out"
+    r = CliRunner().invoke(latency_command, ["--quick", "--out", str(out)], catch_exceptions=False)
+    assert r.exit_code == 0, r.output
+    return out, json.loads((out / "results.json").read_text(encoding="utf-8"))
+
+
+@pytest.fixture(scope="module")
+def pipe(tmp_path_factory) -> Pipeline:
+    return Pipeline.from_dir(make_artifact(tmp_path_factory.mktemp("art"), "student"), threads=1)
+
+
+def _finite(x: object) -> bool:
+    return isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def test_quick_run_has_every_key_with_finite_values(quick):
+    _, res = quick
+    assert set(res["stages_ms"]) == set(STAGES)
+    for key, s in res["stages_ms"].items():
+        assert _finite(s["median"]) and _finite(s["p90"]) and s["p90"] >= s["median"] >= 0, key
+    stages = res["stages_ms"]
+    parts = sum(stages[k]["median"] for k in STAGES if k != "total")
+    assert parts <= stages["total"]["p90"] * 1.5  # stages add up to (about) the total
+    for key in RATIOS:
+        assert _finite(res["ratios"][key]) and res["ratios"][key] > -1, key
+    steps = [row["steps"] for row in res["steps_sweep"]]
+    assert {3, 10, 50, 100} <= set(steps) and steps == sorted(steps)
+    assert all(_finite(row["ms"]) and row["ms"] > 0 for row in res["steps_sweep"])
+    assert res["params"]["r2ldm"] > res["params"]["msdnet"] > 0
+    assert [r["points"] for r in res["points_scaling"]] == [1000, 100000]
+    assert res["peak_memory_mb"]["msdnet_infer"] > 50  # python + numba + onnxruntime at least
+    assert res["machine"]["cpu"] and len(res["machine"]["loadavg_start"]) == 3
+    assert _finite(res["machine"]["sgemm_gflops"]) and res["machine"]["sgemm_gflops"] > 0
+
+
+def test_quick_run_measures_the_same_model_everywhere(quick):
+    _, res = quick
+    assert res["torch_eager"]["max_abs_occupancy_diff"] < 1e-4  # torch and ORT: same weights
+    target = min(20000, 10 * 32 * 32 // 20)  # the tiny grid caps the target at 5 % of its voxels
+    assert 0.9 * target <= res["decoded_points"]["msdnet"] <= target
+    i8 = res["int8"]
+    assert i8["default"] is False and i8["decoded_int8"] > 0 and i8["step_rel_error"] < 0.1
+
+
+def test_quick_run_writes_markdown_and_plots(quick):
+    out, res = quick
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert res["machine"]["cpu"] in md and "Table IV" in md and "Table III" in md
+    assert "0.96" in md and "20.5" in md  # the paper's figures beside ours
+    for name in ("stages.png", "steps.png", "points.png"):
+        assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary file left
+
+
+def test_plain_run_equals_the_pipeline(pipe):
+    pts = synthetic_radar(pipe.columns, pipe.artifact.grid, 300, seed=3)
+    res = pipe(pts, steps=5, seed=7)
+    ref = plain_run(pipe, pts, steps=5, seed=7)
+    assert len(ref.step_feeds) == 5
+    hit = ref.occupancy > np.float32(pipe.artifact.threshold)
+    assert hit.sum() == len(res.points) > 0
+    np.testing.assert_allclose(np.sort(ref.occupancy[hit]), np.sort(res.confidence), atol=1e-5)
+
+
+def test_threshold_calibration_leaves_the_target(pipe):
+    pts = synthetic_radar(pipe.columns, pipe.artifact.grid, 300, seed=4)
+    for target in (50, 900):
+        thr = calibrate_threshold(pipe, pts, target)
+        n = len(pipe(pts, threshold=thr).points)
+        assert target - 2 <= n <= target
+
+
+def test_int8_artifact_is_a_checked_quantized_copy(pipe, tmp_path):
+    pts = synthetic_radar(pipe.columns, pipe.artifact.grid, 300, seed=5)
+    feeds = plain_run(pipe, pts, steps=4).step_feeds
+    folder = int8_artifact(pipe.artifact.root, tmp_path / "int8", feeds)
+    art = load_artifact(folder)  # sizes and hashes re-checked
+    assert art.manifest["quantization"]["weights"] == "int8"
+    step = onnx.load(str(folder / onnx_spec.DENOISER_STEP.file))
+    assert any(n.op_type == "QuantizeLinear" for n in step.graph.node)
+    res8 = Pipeline(art, threads=1)(pts, steps=4)
+    res = pipe(pts, steps=4)
+    assert abs(len(res8.points) - len(res.points)) <= 0.05 * len(res.points)
+
+
+def test_quality_by_steps_on_a_real_frame(pipe, vod_root):
+    frames = load_frames(vod_root, "vod", 1, pipe)
+    fid, radar, lidar = frames[0]
+    assert fid == "00549" and len(radar) > 0 and len(lidar) > 1000
+    rows = quality_by_steps(pipe, frames, (1, 3), pipe.artifact.threshold)
+    assert [r["steps"] for r in rows] == [1, 3]
+    for r in rows:
+        assert r["frames"] == 1 and r["points"] > 0 and 0 < r["cd"] < 20 and 0 <= r["jsd"] <= 1
+
+
+@pytest.mark.parametrize(
+    ("args", "subject"),
+    [
+        (["--data", "somewhere"], "--data"),
+        (["--steps", "3,x"], "--steps"),
+        (["--preset", "tiny", "--r2ldm", "elsewhere"], "--r2ldm"),
+    ],
+)
+def test_bad_arguments_give_one_line(args, subject, tmp_path):
+    r = CliRunner().invoke(latency_command, ["--out", str(tmp_path / "o"), *args])
+    assert r.exit_code == 2
+    lines = r.output.strip().splitlines()
+    assert lines[-1].startswith(f"error: {subject}: ") and "Traceback" not in r.output
