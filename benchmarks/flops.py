@@ -28,7 +28,7 @@ def graph_flops(model_path: str | Path, input_shapes: dict[str, tuple[int, ...]]
             for d, v in zip(dims, input_shapes[inp.name], strict=True):
                 d.ClearField("dim_param")
                 d.dim_value = int(v)
-    inferred = shape_inference.infer_shapes(model)
+    inferred = shape_inference.infer_shapes(model, data_prop=True)  # through Shape->Reshape chains
     shapes: dict[str, list[int]] = {}
     for vi in [*inferred.graph.input, *inferred.graph.value_info, *inferred.graph.output]:
         dims = _dims(vi)

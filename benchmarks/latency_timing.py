@@ -51,9 +51,14 @@ COLUMN_STATS: dict[str, tuple[float, float]] = {
 
 
 def summary(seconds: Sequence[float]) -> dict[str, float]:
-    """{"median", "p90"} in ms and "n" (samples) of wall times in seconds."""
+    """{"median", "p90", "min"} in ms and "n" (samples) of wall times in seconds."""
     ms = np.asarray(seconds, dtype=np.float64) * 1e3
-    return {"median": float(np.median(ms)), "p90": float(np.percentile(ms, 90)), "n": int(ms.size)}
+    return {
+        "median": float(np.median(ms)),
+        "p90": float(np.percentile(ms, 90)),
+        "min": float(ms.min()),
+        "n": int(ms.size),
+    }
 
 
 def timed(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:

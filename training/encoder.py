@@ -83,8 +83,10 @@ class SparseEncoder(nn.Module):
         """One frame, the ``encoder.onnx`` graph: voxel_features (V_0, F) raw per-voxel column
         means; subm_rules_l (V_l, 27) int64; down_rules_l (V_l, 27) int64 rows of level l-1;
         bev_coords (V_3, 4) int64 [b = 0, z, y, x]. Returns F^S (1, bev_channels, H8, W8)."""
-        rules = (subm_rules_0, down_rules_1, subm_rules_1, down_rules_2, subm_rules_2)
-        return self.run(voxel_features, *rules, down_rules_3, subm_rules_3, bev_coords, 1)
+        return self.run(
+            voxel_features, subm_rules_0, down_rules_1, subm_rules_1, down_rules_2, subm_rules_2,
+            down_rules_3, subm_rules_3, bev_coords, batch_size=1,
+        )  # fmt: skip
 
     def run(
         self,

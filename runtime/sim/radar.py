@@ -89,7 +89,7 @@ class RadarConfig:
     ray_az_step_deg: float = 0.3  # degrees between sampling rays in azimuth
     ray_el_step_deg: float = 0.75  # degrees between sampling rays in elevation
     snr_db_at_100m: float = 26.0  # SNR in dB of a 1 m^2 target at 100 m on boresight
-    near_floor_range: float = 60.0  # m, nearer than this the detection floor rises as 1/r^2
+    near_floor_range: float = 80.0  # m, nearer than this the detection floor rises as 1/r^2
     az_pattern_db: float = 20.0  # two-way antenna gain lost at the azimuth FoV edge (quadratic)
     el_pattern_db: float = 70.0  # two-way antenna gain lost at the elevation FoV edge
     pfa: float = 1e-3  # false-alarm probability setting the Swerling I detection curve

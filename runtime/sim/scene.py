@@ -86,19 +86,22 @@ def _near_route(lo: np.ndarray, hi: np.ndarray, route_xy: np.ndarray, radius: fl
     return bool(np.min(np.hypot(d[:, 0], d[:, 1])) <= radius)
 
 
-def _block_side(rows: _Rows, rng, corner, t, n, length, grid: StreetGrid, kerb: float) -> None:
+def _block_side(
+    rows: _Rows, rng, corner, t, n, length: float, width: float, grid: StreetGrid, kerb: float
+) -> None:
     """Buildings, gaps and street furniture along one side of a block.
 
     corner: (2,) kerb corner where the side starts; t: (2,) unit direction along the side;
-    n: (2,) unit normal into the block; length: side length along t, m.
+    n: (2,) unit normal into the block; length, width: block size along t and n, m.
     """
     yaw = float(np.arctan2(t[1], t[0]))
     setback = float(rng.uniform(0.0, 1.5))
     line = grid.sidewalk + setback  # building line, from the kerb
-    u = float(rng.uniform(-2.0, 2.0))
-    while u < length:
+    end = length - line  # buildings stay behind the cross streets' building lines
+    u = line
+    while end - u > 3.0:
         if rng.random() < 0.25:  # gap
-            gap = float(rng.uniform(4.0, 14.0))
+            gap = float(min(rng.uniform(4.0, 14.0), end - u))
             mid = corner + t * (u + gap / 2) + n * line
             kind = rng.random()
             if kind < 0.4:
@@ -109,10 +112,8 @@ def _block_side(rows: _Rows, rng, corner, t, n, length, grid: StreetGrid, kerb: 
                 rows.box(mid + n * 0.4, kerb, kerb + h, gap / 2, 0.4, yaw, mt.VEGETATION)
             u += gap
             continue
-        blen = float(min(rng.uniform(8.0, 30.0), length + 2.0 - u))
-        if blen < 3.0:
-            break
-        depth = float(rng.uniform(8.0, 18.0))
+        blen = float(min(rng.uniform(8.0, 30.0), end - u))
+        depth = float(min(rng.uniform(8.0, 18.0), width - 2.0 * line))
         height = float(rng.uniform(4.0, 12.0) if rng.random() < 0.9 else rng.uniform(12.0, 18.0))
         mat = mt.GLASS if rng.random() < 0.08 else mt.FACADE
         centre = corner + t * (u + blen / 2) + n * (line + depth / 2)
@@ -167,14 +168,15 @@ def _blocks(rows: _Rows, rng, grid: StreetGrid, route_xy: np.ndarray) -> None:
             kerb = float(brng.uniform(0.11, 0.16))
             size = hi - lo
             rows.box((lo + hi) / 2, 0.0, kerb, size[0] / 2, size[1] / 2, 0.0, mt.CONCRETE)
-            sides = [  # (corner, along, inward normal, length): S, E, N, W sides, counter-clockwise
-                (lo, np.array([1.0, 0.0]), np.array([0.0, 1.0]), size[0]),
-                (np.array([hi[0], lo[1]]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), size[1]),
-                (hi, np.array([-1.0, 0.0]), np.array([0.0, -1.0]), size[0]),
-                (np.array([lo[0], hi[1]]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), size[1]),
+            sides = [  # (corner, along, inward normal, axis along): S, E, N, W counter-clockwise
+                (lo, np.array([1.0, 0.0]), np.array([0.0, 1.0]), 0),
+                (np.array([hi[0], lo[1]]), np.array([0.0, 1.0]), np.array([-1.0, 0.0]), 1),
+                (hi, np.array([-1.0, 0.0]), np.array([0.0, -1.0]), 0),
+                (np.array([lo[0], hi[1]]), np.array([0.0, -1.0]), np.array([1.0, 0.0]), 1),
             ]
-            for corner, t, n, length in sides:
-                _block_side(rows, brng, corner, t, n, float(length), grid, kerb)
+            for corner, t, n, axis in sides:
+                length, width = float(size[axis]), float(size[1 - axis])
+                _block_side(rows, brng, corner, t, n, length, width, grid, kerb)
 
 
 def _movers(rows: _Rows, rng, grid: StreetGrid, traj: Trajectory, busy: float) -> int:
@@ -194,6 +196,8 @@ def _movers(rows: _Rows, rng, grid: StreetGrid, traj: Trajectory, busy: float) -
             d_ego = np.array([np.cos(traj.yaw[f]), np.sin(traj.yaw[f])])
             k = int(np.argmin(np.linalg.norm(traj.route_xy - (traj.xy[f] + ahead * d_ego), axis=1)))
             p, d = traj.route_xy[k], traj.route_dir[k]
+            if np.min(np.abs(d)) > 0.01:  # in a turn: streets run along the axes, skip it
+                continue
             right = np.array([d[1], -d[0]])
             if kind == "car":
                 pos = p - 2 * lane * right  # oncoming lane
