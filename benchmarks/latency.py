@@ -27,12 +27,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm import tqdm
 
-from msdnet.benchmarks.flops import graph_flops
 from msdnet.benchmarks.latency_compare import int8_comparison, torch_comparison
 from msdnet.benchmarks.latency_models import KINDS, ModelPair, given_pair, preset_config, random_pair
 from msdnet.benchmarks.latency_report import write_outputs
+from msdnet.benchmarks.latency_runs import msdnet_timings, sweep
 from msdnet.benchmarks.latency_timing import (
     BareStep,
     StageRuns,
@@ -43,7 +42,7 @@ from msdnet.benchmarks.latency_timing import (
     time_stages,
     voxelize_figures,
 )
-from msdnet.benchmarks.machine import machine_info, measure_sgemm_gflops
+from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.pipeline import Pipeline
 
@@ -108,77 +107,6 @@ def _threshold(pipe: Pipeline, weights: str, points: Any, cfg: LatencyConfig) ->
     return pipe.artifact.threshold, "manifest threshold"
 
 
-def _msdnet_timings(pipe: Pipeline, points: Any, thr: float, cfg: LatencyConfig) -> dict[str, Any]:
-    """Stage times interleaved with blocks of T_m bare step calls; loop overhead; FLOP rate."""
-    bare = BareStep(pipe)
-    n_steps = pipe.artifact.diffusion.sample_steps
-    for _ in range(cfg.warmup):
-        pipe(points, threshold=thr, seed=cfg.seed)
-    bare.run(n_steps)
-    runs, blocks = StageRuns({}), []
-    for _ in tqdm(range(cfg.repeats), desc="MSDNet stages", unit="frame", disable=None):
-        one = time_stages(pipe, points, None, thr, 1, cfg.seed)
-        for k, v in one.seconds.items():
-            runs.seconds.setdefault(k, []).extend(v)
-        runs.decoded, runs.stats = one.decoded, one.stats
-        blocks.append(bare.run(n_steps))
-    loop, bare_loop = float(np.median(runs.seconds["ddim_loop"])), float(np.median(blocks))
-    loop_best, bare_best = min(runs.seconds["ddim_loop"]), min(blocks)  # robust to other load
-    step_s, best_s = bare_loop / n_steps, bare_best / n_steps
-    sgemm = measure_sgemm_gflops()  # best-of, right after: the same load as the best step
-    bev = pipe.bev_shape
-    shapes = {"x_t": bev, "t": (1,), "abar_t": (1,), "abar_prev": (1,)}
-    flops = graph_flops(pipe.artifact.root / bare.file, shapes)
-    return {
-        "runs": runs,
-        "loop_overhead_share": (loop_best - bare_best) / loop_best,
-        "step_graph": {
-            "ms": step_s * 1e3,
-            "ms_p90": float(np.percentile(blocks, 90)) / n_steps * 1e3,
-            "gflop": flops / 1e9,
-            "gflops_rate": flops / step_s / 1e9,  # at the median step time
-            "gflops_rate_best": flops / best_s / 1e9,  # at the fastest block
-            "sgemm_gflops_adjacent": sgemm,
-            "flops_over_peak": flops / best_s / 1e9 / sgemm,
-            "steps_per_frame": n_steps,
-            "loop_ms": loop * 1e3,
-            "bare_loop_ms": bare_loop * 1e3,
-            "loop_best_ms": loop_best * 1e3,
-            "bare_loop_best_ms": bare_best * 1e3,
-            "loop_overhead_share_medians": (loop - bare_loop) / loop,
-        },
-    }
-
-
-def _sweep(
-    pipe: Pipeline,
-    thr: float,
-    cfg: LatencyConfig,
-    make: Callable[[int], tuple[Any, int | None]],
-    values: tuple[int, ...],
-    key: str,
-) -> list[dict[str, Any]]:
-    """Latency for each ``value`` (``make(value)`` -> (points, steps)), one warm-up call each."""
-    rows = []
-    for value in tqdm(values, desc=f"{key} sweep", unit=key, disable=None):
-        points, steps = make(value)
-        pipe(points, steps=steps, threshold=thr, seed=cfg.seed)  # new shapes: warm once
-        runs = time_stages(pipe, points, steps, thr, cfg.sweep_repeats, cfg.seed)
-        s = runs.summaries()
-        rows.append(
-            {
-                key: int(value),
-                "ms": s["total"]["median"],
-                "p90": s["total"]["p90"],
-                "loop_ms": s["ddim_loop"]["median"],
-                "voxelize_ms": s["voxelize_rulebooks"]["median"],
-                "voxels": runs.stats.get("voxels", 0),
-                "decoded": runs.decoded,
-            }
-        )
-    return rows
-
-
 def _inputs(cfg: LatencyConfig, pipe: Pipeline) -> tuple[Any, str, list]:
     """(timing input, its description, quality frames): the first --data frame, else synthetic."""
     if cfg.data is None:
@@ -224,19 +152,21 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         for k in KINDS:
             thr[k], thr_notes[k] = _threshold(pipes[k], getattr(pair, k).weights, points, cfg)
         log(f"timing MSDNet ({cfg.repeats} frames) ...")
-        main = _msdnet_timings(msd, points, thr["msdnet"], cfg)
+        main = msdnet_timings(msd, points, thr["msdnet"], cfg.repeats, cfg.warmup, cfg.seed)
         runs: StageRuns = main["runs"]
         log(f"timing R2LDM ({cfg.r2ldm_repeats} frames) ...")
         r2 = time_stages(pipes["r2ldm"], points, None, thr["r2ldm"], cfg.r2ldm_repeats, cfg.seed)
         main["step_graph"]["r2ldm_step_ms"] = summary(BareStep(pipes["r2ldm"]).seconds(3))["median"]
         steps_list = tuple(sorted(set(cfg.steps) | set(TABLE3_STEPS)))
-        sweep = _sweep(msd, thr["msdnet"], cfg, lambda s: (points, s), steps_list, "steps")
+        steps_rows = sweep(
+            msd, thr["msdnet"], lambda s: (points, s), steps_list, "steps", cfg.sweep_repeats, cfg.seed
+        )
         cols, grid = msd.columns, msd.artifact.grid
 
         def scaled(n: int) -> tuple[Any, None]:
             return synthetic_radar(cols, grid, n, cfg.seed + n), None
 
-        scaling = _sweep(msd, thr["msdnet"], cfg, scaled, cfg.point_counts, "points")
+        scaling = sweep(msd, thr["msdnet"], scaled, cfg.point_counts, "points", cfg.sweep_repeats, cfg.seed)
         log("torch eager, voxelizer, msdnet-infer memory, INT8 ...")
         torch_res: dict[str, Any] = {"note": "no torch weights (the manifest's source checkpoint is gone)"}
         if pair.msdnet.torch_model is not None:
@@ -301,7 +231,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "step_flops_over_peak": main["step_graph"]["flops_over_peak"],
         },
         "step_graph": main["step_graph"],
-        "steps_sweep": sweep,
+        "steps_sweep": steps_rows,
         "table3": {"steps": list(TABLE3_STEPS), "quality": quality},
         "points_scaling": scaling,
         "torch_eager": torch_res,

@@ -7,6 +7,7 @@ median and the 90th percentile in milliseconds. Inputs are seeded, so two runs t
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -264,12 +265,23 @@ def infer_command() -> list[str]:
     return [sys.executable, "-c", "from msdnet.runtime.infer_cli import main; main()"]
 
 
+# Runs in a fresh, small Python: starts msdnet-infer, waits, prints its peak RSS. Linux keeps a
+# process's ru_maxrss across execve, so a child forked straight from this (large) benchmark process
+# would report our own size; a small intermediary forks a child whose peak is its own.
+_RSS_PROBE = """
+import json, resource, subprocess, sys
+r = subprocess.run(sys.argv[1:], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+print(json.dumps({"rc": r.returncode, "maxrss_kb": peak, "tail": r.stdout.decode(errors="replace")[-300:]}))
+"""
+
+
 def peak_rss_mb(
     model: Path, points: np.ndarray, columns: Sequence[str], threads: int, threshold: float
 ) -> float:
-    """Max resident memory (MiB) of one ``msdnet-infer`` process densifying ``points`` (N, C)
-    (``columns`` names them; saved as a structured .npy), read with ``os.wait4``: the child's own
-    rusage, as ``resource.getrusage(RUSAGE_CHILDREN)`` but blind to other children."""
+    """Peak resident memory (MiB) of one ``msdnet-infer`` process densifying ``points`` (N, C)
+    (``columns`` names them; saved as a structured .npy): ``resource.getrusage(RUSAGE_CHILDREN)``
+    read in a small intermediary process (see ``_RSS_PROBE``)."""
     with tempfile.TemporaryDirectory() as tmp:
         src = Path(tmp) / "scan.npy"
         table = np.zeros(len(points), dtype=[(c, np.float32) for c in columns])
@@ -279,10 +291,13 @@ def peak_rss_mb(
         cmd = [*infer_command(), str(src), "--model", str(model), "--out", str(Path(tmp) / "out")]
         cmd += ["--threads", str(threads), "--threshold", f"{threshold:.9g}"]
         env = {**os.environ, "TQDM_DISABLE": "1"}
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
-        output = proc.stdout.read().decode(errors="replace") if proc.stdout else ""
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-        if proc.returncode != 0:
-            raise RuntimeError(f"msdnet-infer exited {proc.returncode}: {output.strip()[-300:]}")
-    return usage.ru_maxrss / 1024.0  # Linux: kB
+        probe = subprocess.run(
+            [sys.executable, "-c", _RSS_PROBE, *cmd], capture_output=True, text=True, env=env, check=False
+        )
+    try:
+        report = json.loads(probe.stdout.strip().splitlines()[-1])
+    except (IndexError, json.JSONDecodeError):
+        raise RuntimeError(f"memory probe failed: {probe.stderr.strip()[-300:]}") from None
+    if report["rc"] != 0:
+        raise RuntimeError(f"msdnet-infer exited {report['rc']}: {report['tail'].strip()}")
+    return report["maxrss_kb"] / 1024.0  # Linux reports kB

@@ -11,6 +11,8 @@ at least 3).
 
 from __future__ import annotations
 
+import os
+import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,6 +35,7 @@ from msdnet.runtime.voxelize import voxelize, warmup
 POINT_COUNTS = (300, 1000, 20000, 100000)  # points per cloud timed by voxelize
 RADAR_POINTS = 300  # clouds up to this size are radar-like, larger ones LiDAR-like
 RULEBOOK_VOXELS = 40000  # LiDAR teacher voxels for the rulebook timing (paper grid)
+VOXEL_CAP = 60000  # max_voxels in the voxelize timings (the LiDAR teacher's cap)
 DECODE_FILL = 0.01  # fraction of occupied voxels in the decoder timing (~40k on the paper grid)
 
 
@@ -79,30 +82,59 @@ def lidar_like_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
     return np.concatenate([pts, intensity], axis=1).astype(np.float32)
 
 
-def median_ms(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``fn()`` in ms over ``repeats`` calls, after one untimed call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times) * 1e3)
+def cpu_name() -> str:
+    """The CPU model from /proc/cpuinfo where there is one, else what platform knows."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def time_pair(
+    numba_fn: Callable[[], object], numpy_fn: Callable[[], object], repeats: int, numpy_repeats: int
+) -> tuple[float, float, float, float]:
+    """Median wall and thread-CPU ms of both functions, calls interleaved (so a busy machine
+    slows both alike), each after one untimed call: (numba wall, numpy wall, numba cpu, numpy cpu).
+    CPU time leaves out the time other processes held the core."""
+    wall: tuple[list[float], list[float]] = ([], [])
+    cpu: tuple[list[float], list[float]] = ([], [])
+    numba_fn()
+    numpy_fn()
+    for i in range(max(repeats, numpy_repeats)):
+        for which, fn, count in ((0, numba_fn, repeats), (1, numpy_fn, numpy_repeats)):
+            if i >= count:
+                continue
+            w0, c0 = time.perf_counter(), time.thread_time()
+            fn()
+            cpu[which].append(time.thread_time() - c0)
+            wall[which].append(time.perf_counter() - w0)
+    med = [float(np.median(t) * 1e3) for t in (*wall, *cpu)]
+    return med[0], med[1], med[2], med[3]
 
 
 @dataclass(frozen=True)
 class BenchRow:
-    """One timed case."""
+    """One timed case: medians in ms."""
 
     case: str  # what was timed
     grid: str  # grid preset name
-    size: int  # points (voxelize) or voxels (rulebooks)
-    numba_ms: float  # median ms, numba
-    numpy_ms: float  # median ms, numpy reference
+    size: int  # points (voxelize), voxels (rulebooks) or grid cells (decode)
+    numba_ms: float  # wall, numba
+    numpy_ms: float  # wall, numpy reference
+    numba_cpu_ms: float  # thread CPU time, numba
+    numpy_cpu_ms: float  # thread CPU time, numpy reference
 
     @property
     def speedup(self) -> float:
         return self.numpy_ms / self.numba_ms
+
+    @property
+    def cpu_speedup(self) -> float:
+        return self.numpy_cpu_ms / self.numba_cpu_ms
 
 
 def run_voxelize_bench(
@@ -122,10 +154,13 @@ def run_voxelize_bench(
         for n in point_counts:
             rng = np.random.default_rng(seed + n)
             pts = radar_like_cloud(n, rng) if n <= RADAR_POINTS else lidar_like_cloud(n, rng)
-            cap = 60000
-            t_nb = median_ms(lambda pts=pts, g=grid, c=cap: voxelize(pts, g, c), repeats)
-            t_np = median_ms(lambda pts=pts, g=grid, c=cap: voxelize_numpy(pts, g, c), repeats)
-            rows.append(BenchRow("voxelize", grid_name, n, t_nb, t_np))
+            t = time_pair(
+                lambda pts=pts, g=grid: voxelize(pts, g, VOXEL_CAP),
+                lambda pts=pts, g=grid: voxelize_numpy(pts, g, VOXEL_CAP),
+                repeats,
+                repeats,
+            )
+            rows.append(BenchRow("voxelize", grid_name, n, *t))
 
     grid = GRID_PRESETS[big_grid]
     # ~1.6 points per occupied paper voxel in this scene, so this many points reach the cap
@@ -140,26 +175,35 @@ def run_voxelize_bench(
             level, _, level_shape = down_rulebook_numpy(level, level_shape)
         subm_rulebook_numpy(level, level_shape)
 
-    t_nb = median_ms(lambda: build_encoder_rulebooks(coords, shape), repeats)
-    t_np = median_ms(numpy_rulebooks, max(3, repeats // 5))
-    rows.append(BenchRow("rulebooks (4 subm + 3 down)", big_grid, coords.shape[0], t_nb, t_np))
+    t = time_pair(
+        lambda: build_encoder_rulebooks(coords, shape), numpy_rulebooks, repeats, max(3, repeats // 5)
+    )
+    rows.append(BenchRow("rulebooks (4 subm + 3 down)", big_grid, coords.shape[0], *t))
 
     rng = np.random.default_rng(seed)
     occ = (rng.uniform(size=shape) < DECODE_FILL).astype(np.float32) * 0.9  # (D, H, W)
     off = rng.uniform(-0.05, 0.05, size=(3, *shape)).astype(np.float32)  # (3, D, H, W)
-    t_nb = median_ms(lambda: decode_occupancy(occ, off, grid, 0.5), repeats)
-    t_np = median_ms(lambda: decode_numpy(occ, off, grid, 0.5), max(3, repeats // 5))
-    rows.append(BenchRow(f"decode ({DECODE_FILL:.0%} occupied)", big_grid, occ.size, t_nb, t_np))
+    t = time_pair(
+        lambda: decode_occupancy(occ, off, grid, 0.5),
+        lambda: decode_numpy(occ, off, grid, 0.5),
+        repeats,
+        max(3, repeats // 5),
+    )
+    rows.append(BenchRow(f"decode ({DECODE_FILL:.0%} occupied)", big_grid, occ.size, *t))
     return rows
 
 
 def format_table(rows: list[BenchRow]) -> str:
-    """A plain-text table of the rows."""
-    head = f"{'case':<28} {'grid':<6} {'size':>7} {'numba ms':>9} {'numpy ms':>9} {'speedup':>8}"
+    """A plain-text table of the rows: wall medians and speedup, then the CPU-time speedup."""
+    head = (
+        f"{'case':<28} {'grid':<6} {'size':>7} {'numba ms':>9} {'numpy ms':>9} {'speedup':>8}"
+        f" {'numba cpu':>9} {'numpy cpu':>9} {'cpu speedup':>11}"
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(
             f"{r.case:<28} {r.grid:<6} {r.size:>7} {r.numba_ms:>9.3f} {r.numpy_ms:>9.3f} {r.speedup:>7.1f}x"
+            f" {r.numba_cpu_ms:>9.3f} {r.numpy_cpu_ms:>9.3f} {r.cpu_speedup:>10.1f}x"
         )
     return "\n".join(lines)
 
@@ -177,7 +221,13 @@ def format_table(rows: list[BenchRow]) -> str:
 @one_line_errors
 def voxelize_command(repeats: int, seed: int) -> None:
     """Time the numba voxelizer and rulebook builder against the numpy references."""
+    load = os.getloadavg()[0]
     click.echo(format_table(run_voxelize_bench(repeats, seed)))
     click.echo(
-        "size: points (voxelize), voxels (rulebooks), grid cells (decode); medians after one warm-up call"
+        "size: points (voxelize), voxels (rulebooks), grid cells (decode). Medians in ms after one "
+        "warm-up call; cpu = thread CPU time."
+    )
+    click.echo(
+        f"{cpu_name()}, {os.cpu_count()} logical cores, "
+        f"1-min load average {load:.2f} before, {os.getloadavg()[0]:.2f} after"
     )

@@ -201,6 +201,7 @@ def _down_coords_kernel(
         zo = (rows[t] // h_out) % d_out
         yo = rows[t] % h_out
         cnt = 0
+        lo, hi = w_out, -1  # span of the marked x'
         for kk in range(9):
             zi = zo * stride - padding + kk // 3
             yi = yo * stride - padding + kk % 3
@@ -218,14 +219,22 @@ def _down_coords_kernel(
                         mark[xo] = True
                         xs[cnt] = xo
                         cnt += 1
-        # Sort the x' (a union of up to 9 ascending runs: insertion sort is O(9 cnt)), emit.
-        for a in range(1, cnt):
-            v = xs[a]
-            q = a - 1
-            while q >= 0 and xs[q] > v:
-                xs[q + 1] = xs[q]
-                q -= 1
-            xs[q + 1] = v
+                        lo = min(lo, xo)
+                        hi = max(hi, xo)
+        if hi - lo < 4 * cnt:  # dense row: read the marks in order, O(span)
+            cnt = 0
+            for xo in range(lo, hi + 1):
+                if mark[xo]:
+                    xs[cnt] = xo
+                    cnt += 1
+        else:  # sparse row: insertion sort of the few x', O(cnt^2) with cnt < span / 4
+            for a in range(1, cnt):
+                v = xs[a]
+                q = a - 1
+                while q >= 0 and xs[q] > v:
+                    xs[q + 1] = xs[q]
+                    q -= 1
+                xs[q + 1] = v
         for a in range(cnt):
             out[n_out, 0], out[n_out, 1], out[n_out, 2], out[n_out, 3] = b, zo, yo, xs[a]
             n_out += 1

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from dataclasses import replace
 
 import pytest
@@ -199,8 +200,11 @@ def test_nan_loss_stops_with_the_term_named(tmp_path):
     assert log[-1]["event"] == "stop" and "l1=nan" in log[-1]["error"]
 
 
-def test_resume_refuses_a_different_run(tmp_path):
+def test_resume_refuses_a_different_run(tmp_path, monkeypatch):
     _run(tmp_path, epochs=2, stop_after=1)
     with pytest.raises(MsdnetError, match="run planned 2 epochs, not 3"):
         _run(tmp_path, epochs=3, resume=True)
+    monkeypatch.setattr(sys.modules[__name__], "TCFG", replace(TCFG, lr=0.1, num_workers=1))
+    with pytest.raises(MsdnetError, match=r"train config differs: lr 0.05 \(now 0.1\)$"):
+        _run(tmp_path, epochs=2, resume=True)
     assert math.isfinite(read_checkpoint(tmp_path / "last")[2].history[0]["val_loss"])

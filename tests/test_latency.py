@@ -12,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 from export_helpers import make_artifact
 
+from msdnet.benchmarks.flops import graph_flops
 from msdnet.benchmarks.latency_cli import latency_command
 from msdnet.benchmarks.latency_models import int8_artifact
 from msdnet.benchmarks.latency_quality import load_frames, quality_by_steps
@@ -98,6 +99,24 @@ def test_plain_run_equals_the_pipeline(pipe):
     hit = ref.occupancy > np.float32(pipe.artifact.threshold)
     assert hit.sum() == len(res.points) > 0
     np.testing.assert_allclose(np.sort(ref.occupancy[hit]), np.sort(res.confidence), atol=1e-5)
+
+
+def test_step_graph_flops_match_a_count_by_hand(pipe):
+    """The FLOP rate ratio rests on this count: every conv and linear layer of the step, once."""
+    from export_helpers import tiny_config
+    from torch import nn
+
+    from msdnet.training.nn.denoiser import DenoiserStep, LightDenoiser
+
+    _, c, h, w = pipe.bev_shape
+    by_hand = 0
+    for mod in DenoiserStep(LightDenoiser(tiny_config())).modules():
+        if isinstance(mod, nn.Conv2d):
+            by_hand += 2 * mod.weight.numel() * h * w  # stride 1, same padding: H x W outputs
+        elif isinstance(mod, nn.Linear):
+            by_hand += 2 * mod.weight.numel()
+    shapes = {"x_t": (1, c, h, w), "t": (1,), "abar_t": (1,), "abar_prev": (1,)}
+    assert graph_flops(pipe.artifact.root / onnx_spec.DENOISER_STEP.file, shapes) == by_hand
 
 
 def test_threshold_calibration_leaves_the_target(pipe):

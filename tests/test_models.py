@@ -190,7 +190,7 @@ def _fit(model: torch.nn.Module, batch: Batch, steps: int, lr: float) -> tuple[f
 def fitted_teacher(astyx_batch) -> tuple[TeacherModel, float, float]:
     torch.manual_seed(0)
     teacher = build_model("teacher", ASTYX_TINY)
-    before, after = _fit(teacher, astyx_batch, steps=350, lr=1e-2)
+    before, after = _fit(teacher, astyx_batch, steps=350, lr=3e-3)
     return teacher, before, after
 
 

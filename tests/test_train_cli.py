@@ -138,7 +138,8 @@ def test_bad_input_is_one_line_error(args, message, astyx_root, tmp_path):
 def test_teacher_checkpoint_must_be_a_teacher_of_the_same_config(teacher_run, astyx_root, tmp_path):
     args = ["student", *_astyx(astyx_root), "--preset", "lite", "--teacher", str(teacher_run / "best")]
     r = CliRunner().invoke(main, [*args, "--out", str(tmp_path)])
-    assert r.exit_code == 2 and "teacher config differs from this run: preset 'tiny' (here 'lite')" in r.output
+    assert r.exit_code == 2
+    assert "teacher config differs from this run: preset 'tiny' (now 'lite')" in r.output
 
 
 def test_splits_are_contiguous_cached_and_use_the_dataset_columns(astyx_root, vod_root):

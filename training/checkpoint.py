@@ -71,6 +71,12 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
     return dataclasses.asdict(cfg)
 
 
+def config_diff(saved: Any, current: Any, ignore: tuple[str, ...] = ()) -> list[str]:
+    """``"<field> <saved> (now <current>)"`` for each top-level field of two configs that differs."""
+    a, b = config_to_dict(saved), config_to_dict(current)
+    return [f"{k} {a[k]!r} (now {b[k]!r})" for k in a if k not in ignore and a[k] != b.get(k)]
+
+
 def _convert(tp: Any, value: Any, where: str) -> Any:
     """Coerce a JSON value to the annotated type ``tp`` (dataclasses, tuples, optionals)."""
     origin = typing.get_origin(tp)

@@ -19,9 +19,9 @@ import torch
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import collate
-from msdnet.training.checkpoint import config_to_dict, load_checkpoint, read_checkpoint
+from msdnet.training.checkpoint import config_diff, load_checkpoint, read_checkpoint
 from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, ModelConfig, TrainConfig
-from msdnet.training.data import DATASETS, config_for_dataset, make_splits
+from msdnet.training.data import DATASETS, PairDataset, config_for_dataset, make_splits
 from msdnet.training.distributed import DistInfo, init_distributed, shutdown_distributed
 from msdnet.training.loop import RunSpec, occupancy_counts, train
 from msdnet.training.models import MODEL_KINDS, build_model
@@ -39,22 +39,26 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
     if tcfg != cfg:
-        ours, theirs = config_to_dict(cfg), config_to_dict(tcfg)
-        fields = ", ".join(f"{k} {theirs[k]!r} (here {ours[k]!r})" for k in ours if ours[k] != theirs[k])
+        fields = ", ".join(config_diff(tcfg, cfg))
         raise MsdnetError(folder, f"teacher config differs from this run: {fields}"[:300])
     return load_checkpoint(folder)[0]
 
 
-def _epochs(kind: str, out: Path, resume: bool, epochs: int | None, tcfg: TrainConfig) -> int:
-    """Epochs of the run: --epochs, else on resume what OUT/last planned, else the preset's."""
+def _plan(
+    kind: str, out: Path, resume: bool, epochs: int | None, tcfg: TrainConfig, overrides: dict
+) -> tuple[int, TrainConfig]:
+    """(epochs, train config) of the run. Fresh: --epochs or the preset's, the preset's config
+    with the options given. Resume: what OUT/last planned, with the options given (checked)."""
     has_last = (out / "last").exists() or (out / "last.old").exists()
     if not resume:
         if has_last:
             raise MsdnetError(out, "already holds a checkpoint: pass --resume, or choose another --out")
-        return epochs or (tcfg.epochs_teacher if kind == "teacher" else tcfg.epochs_student)
+        n = epochs or (tcfg.epochs_teacher if kind == "teacher" else tcfg.epochs_student)
+        return n, replace(tcfg, **overrides)
     if not has_last:
         raise MsdnetError(out, "has no checkpoint 'last' to resume")
-    return epochs or read_checkpoint(out / "last")[2].epochs
+    state = read_checkpoint(out / "last")[2]
+    return epochs or state.epochs, replace(state.train, **overrides)
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -74,6 +78,9 @@ def _epochs(kind: str, out: Path, resume: bool, epochs: int | None, tcfg: TrainC
 @click.option("--radar-frames", type=int, default=1, show_default=True, help="VoD radar scans accumulated.")
 @click.option("--save-every", type=int, default=0, show_default=True, help="Also save every N steps.")
 @click.option("--workers", type=int, default=None, help="DataLoader worker processes.")
+@click.option(
+    "--metric-frames", type=int, default=64, show_default=True, help="Val frames with occupancy metrics."
+)
 @click.option("--device", default="cpu", show_default=True, help="torch device (cuda: one GPU per process).")
 @one_line_errors
 def main(
@@ -93,6 +100,7 @@ def main(
     radar_frames: int,
     save_every: int,
     workers: int | None,
+    metric_frames: int,
     device: str,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -101,12 +109,12 @@ def main(
     _choice(preset, sorted(MODEL_PRESETS), "preset")
     if epochs is not None and epochs < 1:
         raise MsdnetError(None, f"--epochs must be >= 1, got {epochs}")
-    overrides = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers}
-    tcfg = replace(TRAIN_PRESETS[preset], **{k: v for k, v in overrides.items() if v is not None})
-    if tcfg.batch_size < 1 or tcfg.lr <= 0:
-        raise MsdnetError(None, "--batch-size must be >= 1 and --lr > 0")
+    options = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers}
+    overrides = {k: v for k, v in options.items() if v is not None}
+    n_epochs, tcfg = _plan(kind, out, resume, epochs, TRAIN_PRESETS[preset], overrides)
+    if tcfg.batch_size < 1 or tcfg.lr <= 0 or tcfg.num_workers < 0:
+        raise MsdnetError(None, "--batch-size must be >= 1, --lr > 0 and --workers >= 0")
     cfg = config_for_dataset(MODEL_PRESETS[preset], dataset)
-    n_epochs = _epochs(kind, out, resume, epochs, tcfg)
     if kind == "teacher" and teacher is not None:
         raise MsdnetError(teacher, "--teacher is for student and r2ldm runs only")
     if kind != "teacher" and teacher is None and not resume:
@@ -116,56 +124,51 @@ def main(
     teacher_model = _teacher(teacher, cfg) if teacher is not None and not resume else None
 
     info = init_distributed(torch.device(device))
-    try:
-        _run(kind, cfg, tcfg, train_set, val_set, out, n_epochs, resume, save_every, device,
-             teacher, teacher_model, dataset, data, info)  # fmt: skip
-    finally:
-        shutdown_distributed()
-
-
-def _run(
-    kind: str,
-    cfg: ModelConfig,
-    tcfg: TrainConfig,
-    train_set: torch.utils.data.Dataset,
-    val_set: torch.utils.data.Dataset,
-    out: Path,
-    epochs: int,
-    resume: bool,
-    save_every: int,
-    device: str,
-    teacher: Path | None,
-    teacher_model: torch.nn.Module | None,
-    dataset: str,
-    data: Path,
-    info: DistInfo,
-) -> None:
-
-    torch.manual_seed(tcfg.seed)  # identical initial weights on every rank
-    model = build_model(kind, cfg, teacher=teacher_model)
+    if device == "cuda" and info.distributed:
+        device = f"cuda:{info.local_rank}"  # one GPU per process
     spec = RunSpec(
         kind=kind,
         out=out,
-        epochs=epochs,
+        epochs=n_epochs,
         resume=resume,
         save_every=save_every,
+        metric_frames=metric_frames,
         device=device,
         teacher=str(teacher.resolve()) if teacher is not None else None,
         dataset={
             "name": dataset,
             "root": str(Path(data).resolve()),
+            "radar_frames": radar_frames,
             "train_frames": [train_set.frame_ids[0], train_set.frame_ids[-1], len(train_set)],
             "val_frames": [val_set.frame_ids[0], val_set.frame_ids[-1], len(val_set)],
         },
     )
-    metrics = partial(occupancy_counts, modality="lidar" if kind == "teacher" else "radar")
+    try:
+        _run(spec, cfg, tcfg, train_set, val_set, teacher_model, info)
+    finally:
+        shutdown_distributed()
+
+
+def _run(
+    spec: RunSpec,
+    cfg: ModelConfig,
+    tcfg: TrainConfig,
+    train_set: PairDataset,
+    val_set: PairDataset,
+    teacher: torch.nn.Module | None,
+    info: DistInfo,
+) -> None:
+    """Build the model (same seed on every rank), train it, print one summary line."""
+    torch.manual_seed(tcfg.seed)
+    model = build_model(spec.kind, cfg, teacher=teacher)
+    metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
     if info.is_main:
-        last = state.history[-1] if state.history else {}
+        val = state.history[-1]["val_loss"] if state.history else float("nan")
+        best = state.best_val_loss if state.best_val_loss is not None else float("nan")
         click.echo(
-            f"{kind}: epoch {state.epoch}/{epochs}, step {state.step}, "
-            f"val loss {last.get('val_loss', float('nan')):.4g}, best {state.best_val_loss:.4g} "
-            f"-> {out / 'best'}"
+            f"{spec.kind}: epoch {state.epoch}/{spec.epochs}, step {state.step}, val loss {val:.4g}, "
+            f"best {best:.4g} -> {spec.out / 'best'}"
         )
 
 

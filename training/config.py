@@ -137,7 +137,7 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
         adapter_hidden=128,
         denoiser_hidden=64,
         time_embed_dim=128,
-        head_channels=(64, 32, 16),
+        head_channels=(32, 8, 8),  # 1/2 and full scale kept narrow: 40x320x320 on a CPU
         r2ldm_channels=(128, 256, 512),
     ),
 }

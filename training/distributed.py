@@ -3,7 +3,7 @@
 ``torchrun --nproc_per_node=N -m msdnet.training.cli ...`` starts N processes and sets
 ``RANK``, ``LOCAL_RANK``, ``WORLD_SIZE``, ``MASTER_ADDR`` and ``MASTER_PORT``; without
 those variables everything here degrades to a single process (no process group).
-Backend: gloo on CPU, nccl when training on CUDA.
+Backend: gloo on CPU; on CUDA nccl, with gloo kept for CPU tensors.
 """
 
 from __future__ import annotations
@@ -45,7 +45,8 @@ def init_distributed(device: torch.device) -> DistInfo:
         return DistInfo()
     info = DistInfo(int(os.environ["RANK"]), world, int(os.environ.get("LOCAL_RANK", "0")))
     if not dist.is_initialized():
-        backend = "nccl" if device.type == "cuda" else "gloo"
+        # CUDA: nccl for the model's tensors, gloo for the loop's small CPU reductions.
+        backend = "cpu:gloo,cuda:nccl" if device.type == "cuda" else "gloo"
         dist.init_process_group(backend=backend, rank=info.rank, world_size=world)
     return info
 

@@ -3,15 +3,19 @@ teacher and the student ("a common set of weights within the point cloud reconst
 
     F^D (B, C, H8, W8) -> 1x1 conv to c4 * D8 channels -> re-read as (B, c4, D8, H8, W8)
       -> 3x3x3 conv                                                      (1/8 grid)
-      -> 2x2x2 transposed conv, crop, 3x3x3 conv -> occupancy / offset    (1/4 grid, width c4)
-      -> 2x2x2 transposed conv, crop, 3x3x3 conv -> occupancy / offset    (1/2 grid, width c2)
-      -> 2x2x2 transposed conv, crop            -> occupancy / offset    (full grid, width c1)
+      -> 2x up, crop, 3x3x3 conv -> occupancy / offset                   (1/4 grid, width c4)
+      -> 2x up, crop, 3x3x3 conv -> occupancy / offset                   (1/2 grid, width c2)
+      -> 2x up fused with the branches, crop -> occupancy / offset       (full grid, width c1)
 
-``head_channels = (c4, c2, c1)``. The full scale (paper: 40 x 320 x 320) has no 3x3x3 conv:
-only the transposed conv and the 1x1x1 branches, so it stays light. Crops make each scale
-exactly the encoder level's grid (``ceil(n / k)`` per axis; lite D = 20 -> 3 at 1/8 -> 6 -> 5).
-At each scale: occupancy = sigmoid(1x1x1 conv) (Eq. 3), offset = tanh(1x1x1 conv) x half that
-scale's voxel size per axis (Eq. 4), channels [dx, dy, dz] in metres.
+``head_channels = (c4, c2, c1)``. Every "2x up" is a 2x2x2 stride-2 transposed convolution written
+as a 1x1x1 convolution to ``8 * c_out`` channels followed by a depth-to-space shuffle (the same
+function; it runs as one MatMul instead of the slow col2im of ConvTranspose3d on CPUs). The full
+scale (paper: 40 x 320 x 320) is never materialised with c1 channels: per half-scale voxel a 1x1x1
+conv gives its 8 children's c1 features, ReLU, then a grouped 1x1x1 conv gives each child's
+[occupancy logit, dx, dy, dz]; only those 4 channels are shuffled to full resolution. Crops make
+each scale exactly the encoder level's grid (lite D = 20 -> 3 at 1/8 -> 6 -> 5). At each scale:
+occupancy = sigmoid(logit) (Eq. 3), offset = tanh(.) x half that scale's voxel size per axis
+(Eq. 4), channels [dx, dy, dz] in metres.
 """
 
 from __future__ import annotations
@@ -34,6 +38,28 @@ def conv3d_norm_relu(channels: int) -> nn.Sequential:
     )
 
 
+def depth_to_space3d(x: Tensor, c_out: int) -> Tensor:
+    """(B, 8 * c_out, D, H, W), channel = child * c_out + c with child = (dz * 2 + dy) * 2 + dx
+    -> (B, c_out, 2D, 2H, 2W)."""
+    b, _, d, h, w = x.shape
+    x = x.reshape(b, 2, 2, 2, c_out, d, h, w)  # (B, dz, dy, dx, c, D, H, W)
+    x = x.permute(0, 4, 5, 1, 6, 2, 7, 3)  # (B, c, D, dz, H, dy, W, dx)
+    return x.reshape(b, c_out, 2 * d, 2 * h, 2 * w)
+
+
+class Up2x(nn.Module):
+    """2x2x2 stride-2 transposed conv as 1x1x1 conv + depth-to-space: (B, cin, D, H, W) ->
+    (B, cout, 2D, 2H, 2W)."""
+
+    def __init__(self, cin: int, cout: int) -> None:
+        super().__init__()
+        self.cout = cout
+        self.proj = nn.Conv3d(cin, 8 * cout, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return depth_to_space3d(self.proj(x), self.cout)
+
+
 class ReconHead(nn.Module):
     """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1."""
 
@@ -45,17 +71,19 @@ class ReconHead(nn.Module):
         self.shapes = scale_shapes(cfg.grid)  # (D, H, W) per scale 1/4, 1/2, 1
         self.lift = nn.Conv2d(cfg.bev_channels, c4 * self.d8, 1)
         self.conv8 = conv3d_norm_relu(c4)
-        self.up4 = nn.ConvTranspose3d(c4, c4, 2, stride=2)
+        self.up4 = Up2x(c4, c4)
         self.post4 = nn.Sequential(group_norm(c4), nn.ReLU(), conv3d_norm_relu(c4))
-        self.up2 = nn.ConvTranspose3d(c4, c2, 2, stride=2)
+        self.up2 = Up2x(c4, c2)
         self.post2 = nn.Sequential(group_norm(c2), nn.ReLU(), conv3d_norm_relu(c2))
-        self.up1 = nn.ConvTranspose3d(c2, c1, 2, stride=2)
-        widths = (c4, c2, c1)
-        self.occ = nn.ModuleList([nn.Conv3d(c, 1, 1) for c in widths])
-        self.off = nn.ModuleList([nn.Conv3d(c, 3, 1) for c in widths])
+        self.up1 = nn.Conv3d(c2, 8 * c1, 1)  # per half-scale voxel: its 8 children's c1 features
+        self.full = nn.Conv3d(8 * c1, 8 * 4, 1, groups=8)  # per child: [logit, dx, dy, dz]
+        self.occ = nn.ModuleList([nn.Conv3d(c, 1, 1) for c in (c4, c2)])
+        self.off = nn.ModuleList([nn.Conv3d(c, 3, 1) for c in (c4, c2)])
         prior = math.log(cfg.occupancy_prior / (1.0 - cfg.occupancy_prior))
         for conv in self.occ:
             nn.init.constant_(conv.bias, prior)  # start at the typical occupancy, not at 0.5
+        with torch.no_grad():
+            self.full.bias.reshape(8, 4)[:, 0] = prior
         half = torch.tensor(cfg.grid.voxel_size, dtype=torch.float32) / 2.0  # [vx, vy, vz] / 2
         for s, k in enumerate(SCALE_FACTORS):
             self.register_buffer(f"half_size_{s}", (half * k).reshape(1, 3, 1, 1, 1), persistent=False)
@@ -65,27 +93,33 @@ class ReconHead(nn.Module):
         return x[:, :, :d, :h, :w]
 
     def _branches(self, x: Tensor, s: int) -> tuple[Tensor, Tensor]:
-        """x (B, c, D, H, W) at scale s -> (occupancy logits (B, 1, D, H, W), offsets (B, 3, ...))."""
+        """x (B, c, D, H, W) at scale s (1/4 or 1/2) -> (occupancy logits (B, 1, D, H, W),
+        offsets (B, 3, D, H, W))."""
         half = getattr(self, f"half_size_{s}")
         return self.occ[s](x), torch.tanh(self.off[s](x)) * half
 
-    def _trunk(self, features: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """F^D (B, C, H8, W8) -> volumes at 1/4 (c4), 1/2 (c2) and 1 (c1)."""
+    def _full(self, x2: Tensor) -> tuple[Tensor, Tensor]:
+        """x2 (B, c2, D2, H2, W2) -> full scale (logits (B, 1, D, H, W), offsets (B, 3, D, H, W))."""
+        y = self._crop(depth_to_space3d(self.full(torch.relu(self.up1(x2))), 4), 2)  # (B, 4, D, H, W)
+        return y[:, :1], torch.tanh(y[:, 1:]) * self.half_size_2
+
+    def _trunk(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        """F^D (B, C, H8, W8) -> volumes at 1/4 (c4) and 1/2 (c2)."""
         b, _, h8, w8 = features.shape
         x = self.lift(features).reshape(b, self.c4, self.d8, h8, w8)  # channel-major re-read
         x = self.conv8(torch.relu(x))  # (B, c4, D8, H8, W8)
         x4 = self.post4(self._crop(self.up4(x), 0))  # (B, c4, D4, H4, W4)
         x2 = self.post2(self._crop(self.up2(x4), 1))  # (B, c2, D2, H2, W2)
-        x1 = torch.relu(self._crop(self.up1(x2), 2))  # (B, c1, D, H, W)
-        return x4, x2, x1
+        return x4, x2
 
     def multi_scale(self, features: Tensor) -> list[tuple[Tensor, Tensor]]:
         """F^D (B, C, H8, W8) -> per scale 1/4, 1/2, 1: (occupancy logits (B, 1, D_s, H_s, W_s),
         offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]). Logits, for a stable BCE (Eq. 5)."""
-        return [self._branches(x, s) for s, x in enumerate(self._trunk(features))]
+        x4, x2 = self._trunk(features)
+        return [self._branches(x4, 0), self._branches(x2, 1), self._full(x2)]
 
     def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """Inference, full scale only (``recon_head.onnx``): F^D (B, C, H8, W8) ->
         (occupancy (B, 1, D, H, W) in [0, 1], offsets (B, 3, D, H, W) metres [dx, dy, dz])."""
-        logits, off = self._branches(self._trunk(features)[2], 2)
+        logits, off = self._full(self._trunk(features)[1])
         return torch.sigmoid(logits), off

@@ -32,6 +32,7 @@ from tqdm import tqdm
 from msdnet.runtime.errors import MsdnetError
 from msdnet.training.checkpoint import (
     CheckpointState,
+    config_diff,
     load_training_state,
     load_weights,
     read_checkpoint,
@@ -57,6 +58,7 @@ class RunSpec:
     resume: bool = False  # continue from out/last (weights, optimizer, scheduler, position)
     save_every: int = 0  # also save out/last every N steps inside an epoch (0: epoch ends only)
     log_every: int = 10  # steps between "step" lines in log.jsonl
+    metric_frames: int | None = 64  # validation frames that also get occupancy metrics (None: all)
     stop_after: int | None = None  # return after this many epochs in this call (a clean "kill")
     device: str = "cpu"  # torch device of model and batches
     teacher: str | None = None  # teacher checkpoint path (student / r2ldm), recorded
@@ -164,8 +166,11 @@ def evaluate(
     info: DistInfo,
     device: torch.device,
     metrics_fn: MetricsFn | None = None,
+    metric_frames: int | None = None,
 ) -> dict[str, float]:
-    """Validation: mean of every loss term (``val_<term>``) plus summed metric counts.
+    """Validation: mean of every loss term (``val_<term>``) plus summed metric counts
+    (``metrics_fn`` on the first ``metric_frames`` frames, all when None; the count of
+    frames it saw is ``metric_frames``).
 
     Each rank takes a DistributedSampler shard (padded by repeating frames so the shards
     are equal); sums are all-reduced so every rank returns the same numbers.
@@ -178,13 +183,15 @@ def evaluate(
     sums: dict[str, float] = {}
     counts: dict[str, float] = {}
     frames = 0
+    per_rank = math.ceil((metric_frames or 0) / info.world_size)
     with torch.no_grad():
         for batch in loader:
             batch = _to_device(batch, device)
             n = _batch_size(batch)
             for k, v in model.losses(batch).items():
                 sums[f"val_{k}"] = sums.get(f"val_{k}", 0.0) + float(v) * n
-            if metrics_fn is not None:
+            if metrics_fn is not None and (metric_frames is None or frames < per_rank):
+                counts["metric_frames"] = counts.get("metric_frames", 0.0) + n
                 for k, v in metrics_fn(model, batch).items():
                     counts[k] = counts.get(k, 0.0) + float(v)
             frames += n
@@ -212,13 +219,14 @@ def _resume_state(
     if state.kind != spec.kind:
         problems.append(f"kind is {state.kind}, not {spec.kind}")
     if saved_cfg != cfg:
-        problems.append(f"model config differs (preset {saved_cfg.preset} vs {cfg.preset})")
+        problems.append("model config differs: " + ", ".join(config_diff(saved_cfg, cfg)))
     if state.epochs != spec.epochs:
         problems.append(f"run planned {state.epochs} epochs, not {spec.epochs}")
     if state.world_size != info.world_size:
         problems.append(f"trained by {state.world_size} processes, not {info.world_size}")
-    if state.train != train_cfg:
-        problems.append("train config differs")
+    changed = config_diff(state.train, train_cfg, ignore=("num_workers",))  # workers may change
+    if changed:
+        problems.append("train config differs: " + ", ".join(changed))
     if problems:
         raise MsdnetError(folder, "cannot resume: " + "; ".join(problems))
     load_weights(model, folder / "model.safetensors")
@@ -307,6 +315,7 @@ def _train(
         sampler=sampler,
         collate_fn=collate_fn,
         num_workers=train_cfg.num_workers,
+        persistent_workers=train_cfg.num_workers > 0,  # workers keep their frame caches
     )
     net = wrap_for_training(model, info)
     log = JsonLog(spec.out / "log.jsonl") if info.is_main else None
@@ -325,7 +334,9 @@ def _train(
             t0 = time.perf_counter()
             record = _train_epoch(net, model, loader, sampler, optimizer, scheduler, params,
                                   state, spec, train_cfg, info, device, log, save)  # fmt: skip
-            record.update(evaluate(model, val_set, collate_fn, train_cfg, info, device, metrics_fn))
+            record.update(
+                evaluate(model, val_set, collate_fn, train_cfg, info, device, metrics_fn, spec.metric_frames)
+            )
             record.update(occupancy_scores(record))
             record["lr"] = scheduler.get_last_lr()[0]
             record["seconds"] = round(time.perf_counter() - t0, 3)

@@ -88,13 +88,14 @@ class RadarConfig:
     el_res_deg: float = 3.0  # degrees, elevation cell
     ray_az_step_deg: float = 0.3  # degrees between sampling rays in azimuth
     ray_el_step_deg: float = 0.75  # degrees between sampling rays in elevation
-    snr_db_at_100m: float = 26.0  # SNR in dB of a 1 m^2 target at 100 m on boresight
-    near_floor_range: float = 80.0  # m, nearer than this the detection floor rises as 1/r^2
+    snr_db_at_100m: float = 18.0  # SNR in dB of a 1 m^2 target at 100 m on boresight
+    near_floor_range: float = 40.0  # m, nearer than this the detection floor rises as 1/r^2
     az_pattern_db: float = 20.0  # two-way antenna gain lost at the azimuth FoV edge (quadratic)
-    el_pattern_db: float = 70.0  # two-way antenna gain lost at the elevation FoV edge
+    el_pattern_db: float = 50.0  # two-way gain lost 15 degrees off the beam's elevation centre
+    beam_el_deg: float = -2.5  # elevation of the antenna beam's centre (negative: tilted down)
     pfa: float = 1e-3  # false-alarm probability setting the Swerling I detection curve
-    glint_rcs_db: float = 4.5  # dBsm, median RCS of a glint (point scatterer on a surface)
-    glint_spread_db: float = 6.0  # dB, 1-sigma spread of glint RCS around the median
+    glint_rcs_db: float = -0.5  # dBsm, median RCS of a glint (point scatterer on a surface)
+    glint_spread_db: float = 10.0  # dB, 1-sigma spread of glint RCS around the median
     peak_window: tuple[int, int, int] = (0, 1, 2)  # peak half-widths in (range, az, el) cells
     cfar_guard: int = 1  # CA-CFAR guard cells each side in range
     cfar_train: int = 4  # CA-CFAR training cells each side in range
@@ -170,7 +171,7 @@ class RadarSim:
         """Two-way antenna gain (linear, 1 on boresight) at azimuth / elevation (rad): (N,)."""
         cfg = self.cfg
         loss_db = cfg.az_pattern_db * (np.degrees(az) / cfg.az_fov_deg) ** 2
-        loss_db += cfg.el_pattern_db * (np.degrees(el) / cfg.el_fov_deg) ** 2
+        loss_db += cfg.el_pattern_db * ((np.degrees(el) - cfg.beam_el_deg) / cfg.el_fov_deg) ** 2
         return 10.0 ** (-loss_db / 10.0)
 
     def _cells(self, t, az, el, sigma, rng):

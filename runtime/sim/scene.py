@@ -185,14 +185,14 @@ def _movers(rows: _Rows, rng, grid: StreetGrid, traj: Trajectory, busy: float) -
     lane = 0.45 * grid.road_half
     n_total = 0
     counts = {
-        "car": rng.poisson(busy * (2.5 + 0.6 * duration)),
-        "cyclist": rng.poisson(busy * (5.0 + 1.0 * duration)),
-        "pedestrian": rng.poisson(busy * (3.0 + 0.5 * duration)),
+        "car": rng.poisson(busy * (3.0 + 1.0 * duration)),
+        "cyclist": rng.poisson(busy * (8.0 + 2.0 * duration)),
+        "pedestrian": rng.poisson(busy * (5.0 + 1.0 * duration)),
     }
     for kind, count in counts.items():
         for _ in range(int(count)):
             f = int(rng.integers(len(traj.xy)))  # frame at which the ego meets it
-            ahead = float(rng.uniform(-10.0, 60.0))
+            ahead = float(rng.uniform(0.0, 40.0))
             d_ego = np.array([np.cos(traj.yaw[f]), np.sin(traj.yaw[f])])
             k = int(np.argmin(np.linalg.norm(traj.route_xy - (traj.xy[f] + ahead * d_ego), axis=1)))
             p, d = traj.route_xy[k], traj.route_dir[k]

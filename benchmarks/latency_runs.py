@@ -1,0 +1,104 @@
+"""Measurement protocols of ``msdnet-bench latency``: the main MSDNet run, interleaved with the
+bare step graph (loop overhead, FLOP rate), and the round-robin sweeps over steps and input size."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from msdnet.benchmarks.flops import graph_flops
+from msdnet.benchmarks.latency_timing import BareStep, StageRuns, time_stages
+from msdnet.benchmarks.machine import measure_sgemm_gflops
+from msdnet.runtime.pipeline import Pipeline
+
+
+def msdnet_timings(
+    pipe: Pipeline, points: Any, thr: float, repeats: int, warmup: int, seed: int = 0
+) -> dict[str, Any]:
+    """``repeats`` pipeline calls (after ``warmup``), each followed by a block of T_m bare
+    step-graph calls, so both see the same load. -> {"runs": StageRuns, "loop_overhead_share":
+    (best loop - best block) / best loop, "step_graph": times, FLOPs, FLOP rate against a numpy
+    sgemm measured right after (best of each)}."""
+    bare = BareStep(pipe)
+    n_steps = pipe.artifact.diffusion.sample_steps
+    for _ in range(warmup):
+        pipe(points, threshold=thr, seed=seed)
+    bare.run(n_steps)
+    runs, blocks = StageRuns({}), []
+    for _ in tqdm(range(repeats), desc="MSDNet stages", unit="frame", disable=None):
+        one = time_stages(pipe, points, None, thr, 1, seed)
+        for k, v in one.seconds.items():
+            runs.seconds.setdefault(k, []).extend(v)
+        runs.decoded, runs.stats = one.decoded, one.stats
+        blocks.append(bare.run(n_steps))
+    loop, bare_loop = float(np.median(runs.seconds["ddim_loop"])), float(np.median(blocks))
+    loop_best, bare_best = min(runs.seconds["ddim_loop"]), min(blocks)  # robust to other load
+    step_s, best_s = bare_loop / n_steps, bare_best / n_steps
+    sgemm = measure_sgemm_gflops()  # best-of, right after: the same load as the best step
+    bev = pipe.bev_shape
+    shapes = {"x_t": bev, "t": (1,), "abar_t": (1,), "abar_prev": (1,)}
+    flops = graph_flops(pipe.artifact.root / bare.file, shapes)
+    return {
+        "runs": runs,
+        "loop_overhead_share": (loop_best - bare_best) / loop_best,
+        "step_graph": {
+            "ms": step_s * 1e3,
+            "ms_p90": float(np.percentile(blocks, 90)) / n_steps * 1e3,
+            "gflop": flops / 1e9,
+            "gflops_rate": flops / step_s / 1e9,  # at the median step time
+            "gflops_rate_best": flops / best_s / 1e9,  # at the fastest block
+            "sgemm_gflops_adjacent": sgemm,
+            "flops_over_peak": flops / best_s / 1e9 / sgemm,
+            "steps_per_frame": n_steps,
+            "loop_ms": loop * 1e3,
+            "bare_loop_ms": bare_loop * 1e3,
+            "loop_best_ms": loop_best * 1e3,
+            "bare_loop_best_ms": bare_best * 1e3,
+            "loop_overhead_share_medians": (loop - bare_loop) / loop,
+        },
+    }
+
+
+def sweep(
+    pipe: Pipeline,
+    thr: float,
+    make: Callable[[int], tuple[Any, int | None]],
+    values: tuple[int, ...],
+    key: str,
+    repeats: int,
+    seed: int = 0,
+) -> list[dict[str, Any]]:
+    """Latency for each ``value`` (``make(value)`` -> (points, steps)). One warm-up call per value,
+    then the repetitions go round-robin over the values, so a burst of other load hits them all."""
+    cases = [make(v) for v in values]
+    for points, steps in cases:
+        pipe(points, steps=steps, threshold=thr, seed=seed)  # new shapes: warm once
+    runs = [StageRuns({}) for _ in values]
+    bar = tqdm(total=repeats * len(values), desc=f"{key} sweep", disable=None)
+    for _ in range(repeats):
+        for (points, steps), acc in zip(cases, runs, strict=True):
+            one = time_stages(pipe, points, steps, thr, 1, seed)
+            for k, v in one.seconds.items():
+                acc.seconds.setdefault(k, []).extend(v)
+            acc.decoded, acc.stats = one.decoded, one.stats
+            bar.update()
+    bar.close()
+    rows = []
+    for value, acc in zip(values, runs, strict=True):
+        s = acc.summaries()
+        rows.append(
+            {
+                key: int(value),
+                "ms": s["total"]["median"],
+                "p90": s["total"]["p90"],
+                "min": s["total"]["min"],
+                "loop_ms": s["ddim_loop"]["median"],
+                "voxelize_ms": s["voxelize_rulebooks"]["median"],
+                "voxels": acc.stats.get("voxels", 0),
+                "decoded": acc.decoded,
+            }
+        )
+    return rows

@@ -1,0 +1,287 @@
+"""Point-cloud quality of every method on the same frames (MSDNet Tables I and II).
+
+For each frame of a dataset split: the frame is preprocessed on the models' grid
+(``runtime.preprocess.preprocess_frame``: radar cropped to the grid box; the LiDAR reference
+cropped to the grid box and the radar's field of view, ground removed, as the papers evaluate),
+every method turns the radar scan into a cloud, that cloud is cropped exactly like the reference
+(:func:`crop_to_grid`) and scored against it with ``benchmarks.metrics.score_frame``. Tables hold
+the mean of each metric over the frames where it is defined (an empty prediction has no CD).
+
+``save``: every method's cloud of every frame as ``save/<method key>/<frame>.npy`` ((M, 3)
+float32 [x, y, z], radar frame, metres), the reference as ``save/lidar/<frame>.npy`` and an
+``index.json`` naming the methods, frames and grid, so other tools can score the same clouds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from msdnet.benchmarks.eval_methods import Method, primary
+from msdnet.benchmarks.metrics import FSCORE_THRESHOLDS, FrameScores, score_frame
+from msdnet.runtime.datasets import FrameDataset
+from msdnet.runtime.grid import GridConfig
+from msdnet.runtime.io import atomic_output, write_cloud
+from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.preprocess import crop_mask, preprocess_frame
+
+FSCORE_KEYS = tuple(f"fscore@{t:g}" for t in FSCORE_THRESHOLDS)  # "fscore@0.05", ...
+# summary metrics, in table order: name -> whether lower is better
+METRICS: dict[str, bool] = {
+    "cd": True,
+    "cd_squared": True,
+    "mhd": True,
+    **{k: False for k in FSCORE_KEYS},
+    "jsd": True,
+    "mmd": True,
+}
+AGREEMENT_TOL = 0.01  # torch vs onnxruntime: largest relative difference of a mean metric
+# MSDNet vs R2LDM relative margins the issue asks for, percent (negative: lower is better)
+MARGIN_BAR = {"cd": -15.0, "mhd": -66.0, **{k: 44.0 for k in FSCORE_KEYS}}
+LIDAR_KEY = "lidar"  # --save folder of the reference clouds
+
+
+@dataclass
+class QualityRun:
+    """Per-frame scores of every method, and the clouds kept for pictures."""
+
+    frame_ids: list[str]  # frames scored, in order
+    scores: dict[str, list[FrameScores]]  # method name -> one FrameScores per frame
+    pictures: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # frame -> name -> (M, 3)
+
+
+def pick_frames(frame_ids: list[str], max_frames: int | None) -> list[str]:
+    """All ids, or ``max_frames`` of them spread evenly over the split (in order)."""
+    if max_frames is None or max_frames >= len(frame_ids):
+        return list(frame_ids)
+    picks = sorted({int(i) for i in np.linspace(0, len(frame_ids) - 1, max_frames)})
+    return [frame_ids[i] for i in picks]
+
+
+def crop_to_grid(points: np.ndarray, grid: GridConfig) -> np.ndarray:
+    """points: (N, >=3) [x, y, z, ...] radar frame -> (M, 3) float32 inside the grid box and the
+    radar's field of view: the same crop as the LiDAR reference gets."""
+    xyz = np.asarray(points, dtype=np.float32)[:, :3]
+    return np.ascontiguousarray(xyz[crop_mask(xyz, grid, fov=True)])
+
+
+def xy_range(grid: GridConfig) -> tuple[float, float, float, float]:
+    """(x0, y0, x1, y1) of the grid: the BEV area of JSD / MMD."""
+    r = grid.point_range
+    return (r[0], r[1], r[3], r[4])
+
+
+def _save_cloud(folder: Path, frame_id: str, xyz: np.ndarray) -> None:
+    write_cloud(folder / f"{frame_id}.npy", PointCloud(xyz, ("x", "y", "z")))
+
+
+def evaluate_quality(
+    ds: FrameDataset,
+    frame_ids: list[str],
+    methods: list[Method],
+    grid: GridConfig,
+    seed: int = 0,
+    save: Path | None = None,
+    picture_ids: tuple[str, ...] = (),
+    progress: bool = True,
+) -> QualityRun:
+    """Score every method on every frame (module docstring); keep the clouds of ``picture_ids``."""
+    run = QualityRun(list(frame_ids), {m.name: [] for m in methods})
+    area = xy_range(grid)
+    for fid in tqdm(frame_ids, desc="quality", unit="frame", disable=not progress or None):
+        frame = preprocess_frame(ds.get(fid), grid)
+        ref = crop_to_grid(frame.lidar.xyz, grid)  # already cropped; a no-op kept for symmetry
+        if save is not None:
+            _save_cloud(save / LIDAR_KEY, fid, ref)
+        kept: dict[str, np.ndarray] = {}
+        for m in methods:
+            pred = crop_to_grid(m.run(frame.radar, seed), grid)
+            run.scores[m.name].append(score_frame(pred, ref, area))
+            if save is not None:
+                _save_cloud(save / m.key, fid, pred)
+            if fid in picture_ids:
+                kept[m.name] = pred
+        if fid in picture_ids:
+            run.pictures[fid] = {**kept, "LiDAR": ref}
+    return run
+
+
+def _mean(values: list[float]) -> float:
+    arr = np.asarray(values, dtype=np.float64)
+    arr = arr[np.isfinite(arr)]
+    return float(arr.mean()) if arr.size else float("nan")
+
+
+def frame_row(s: FrameScores) -> dict[str, float]:
+    """One frame's scores as {metric: value} (``METRICS`` keys plus ``points``)."""
+    return {
+        "cd": s.cd,
+        "cd_squared": s.cd_squared,
+        "mhd": s.mhd,
+        **{k: s.fscore[t] for k, t in zip(FSCORE_KEYS, FSCORE_THRESHOLDS, strict=True)},
+        "jsd": s.jsd,
+        "mmd": s.mmd,
+        "points": float(s.num_points),
+    }
+
+
+def summarize(scores: list[FrameScores]) -> dict[str, float]:
+    """Mean of each metric over the frames where it is finite; ``points`` mean points per frame;
+    ``frames`` scored and ``empty_frames`` (no predicted point, so no CD / MHD / JSD / MMD)."""
+    rows = [frame_row(s) for s in scores]
+    out = {k: _mean([r[k] for r in rows]) for k in (*METRICS, "points")}
+    out["frames"] = len(scores)
+    out["empty_frames"] = sum(s.num_points == 0 for s in scores)
+    return out
+
+
+def relative_difference(a: float, b: float) -> float:
+    """|a - b| / max(|a|, |b|) (0 when both are 0, nan when either is not finite)."""
+    if not (math.isfinite(a) and math.isfinite(b)):
+        return float("nan")
+    scale = max(abs(a), abs(b))
+    return abs(a - b) / scale if scale > 0 else 0.0
+
+
+def agreement(summary: dict[str, dict[str, float]], methods: list[Method]) -> list[dict[str, Any]]:
+    """torch vs onnxruntime of the same model kind and role: the largest relative difference of
+    any mean metric (and points per frame); ``ok`` when within ``AGREEMENT_TOL``."""
+    rows = []
+    for t in (m for m in methods if m.backend == "torch"):
+        onnx = [m for m in methods if m.backend == "onnxruntime" and m.kind == t.kind and m.role == t.role]
+        if len(onnx) != 1:
+            continue
+        o = onnx[0]
+        diffs = {k: relative_difference(summary[t.name][k], summary[o.name][k]) for k in (*METRICS, "points")}
+        finite = [d for d in diffs.values() if math.isfinite(d)]
+        worst = max(finite) if finite else float("nan")
+        rows.append(
+            {
+                "torch": t.name,
+                "onnxruntime": o.name,
+                "relative_difference": diffs,
+                "max_relative_difference": worst,
+                "tolerance": AGREEMENT_TOL,
+                "ok": bool(finite) and worst <= AGREEMENT_TOL,
+            }
+        )
+    return rows
+
+
+def margins(summary: dict[str, dict[str, float]], methods: list[Method]) -> dict[str, Any] | None:
+    """MSDNet vs R2LDM, percent: ``100 (MSDNet - R2LDM) / R2LDM`` per metric, with the bar
+    (``MARGIN_BAR``) and whether it is met; None without both models."""
+    ms, r2 = primary(methods, "msdnet"), primary(methods, "r2ldm")
+    if ms is None or r2 is None:
+        return None
+    rows = {}
+    for k in METRICS:
+        a, b = summary[ms.name][k], summary[r2.name][k]
+        pct = 100.0 * (a - b) / abs(b) if math.isfinite(a) and math.isfinite(b) and b != 0 else float("nan")
+        bar = MARGIN_BAR.get(k)
+        met = None
+        if bar is not None and math.isfinite(pct):
+            met = pct <= bar if bar < 0 else pct >= bar
+        rows[k] = {"percent": pct, "bar": bar, "met": met}
+    return {"msdnet": ms.name, "r2ldm": r2.name, "metrics": rows}
+
+
+def per_frame(run: QualityRun) -> dict[str, list[dict[str, Any]]]:
+    """method name -> [{frame, cd, cd_squared, mhd, fscore@t..., jsd, mmd, points}, ...]."""
+    return {
+        name: [{"frame": fid, **frame_row(s)} for fid, s in zip(run.frame_ids, scores, strict=True)]
+        for name, scores in run.scores.items()
+    }
+
+
+def write_save_index(save: Path, methods: list[Method], frame_ids: list[str], grid: GridConfig) -> Path:
+    """``save/index.json``: what the saved clouds are (methods by key, frames, grid, layout)."""
+    doc = {
+        "layout": "<key>/<frame>.npy: (M, 3) float32 [x, y, z], radar frame, metres",
+        "reference": {"key": LIDAR_KEY, "what": "preprocessed LiDAR (grid box + FOV, ground removed)"},
+        "methods": [{"key": m.key, "name": m.name} for m in methods],
+        "frames": frame_ids,
+        "grid": {"point_range": list(grid.point_range), "voxel_size": list(grid.voxel_size), "fov_deg": grid.fov_deg},
+    }
+    target = save / "index.json"
+    with atomic_output(target) as tmp:
+        tmp.write_text(json.dumps(doc, indent=1) + "\n", encoding="utf-8")
+    return target
+
+
+def strip_panels(run: QualityRun, fid: str, methods: list[Method]) -> list[tuple[str, np.ndarray, str]]:
+    """The picture strip of one frame: radar | R2LDM | MSDNet | LiDAR (models present only)."""
+    from msdnet.benchmarks.quality_report import PANEL_COLOURS
+
+    clouds = run.pictures[fid]
+    panels = [("4D radar", clouds[methods[0].name], PANEL_COLOURS["radar"])]
+    for role in ("r2ldm", "msdnet"):
+        m = primary(methods, role)
+        if m is not None:
+            panels.append((m.name, clouds[m.name], PANEL_COLOURS[role]))
+    panels.append(("LiDAR", clouds["LiDAR"], PANEL_COLOURS["lidar"]))
+    return panels
+
+
+def run_quality(
+    ds: FrameDataset,
+    evaluation: dict[str, Any],
+    methods: list[Method],
+    grid: GridConfig,
+    out: Path,
+    max_frames: int | None = None,
+    seed: int = 0,
+    pictures: int = 3,
+    save: Path | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Score ``methods`` (the first one raw radar) on ``ds`` and write ``out/results.json``,
+    ``out/results.md`` and ``out/pictures/<frame>.png``; returns results.json's content.
+
+    ``evaluation``: what was evaluated ({dataset, data, split}), copied into results.json.
+    """
+    from msdnet.benchmarks.machine import machine_info
+    from msdnet.benchmarks.quality_report import picture_strip, quality_markdown, write_json, write_text
+    from msdnet.runtime.errors import MsdnetError
+
+    frame_ids = pick_frames(list(ds.frame_ids), max_frames)
+    if not frame_ids:
+        raise MsdnetError(ds.root, f"split {evaluation.get('split')!r} has no frames")
+    picture_ids = tuple(pick_frames(frame_ids, pictures)) if pictures > 0 else ()
+    run = evaluate_quality(ds, frame_ids, methods, grid, seed, save, picture_ids, progress)
+    summary = {name: summarize(scores) for name, scores in run.scores.items()}
+    out.mkdir(parents=True, exist_ok=True)
+    pics = {}
+    for fid in picture_ids:
+        target = out / "pictures" / f"{fid}.png"
+        picture_strip(target, strip_panels(run, fid, methods), grid, f"{evaluation['dataset']} frame {fid}")
+        pics[fid] = str(target.relative_to(out))
+    if save is not None:
+        write_save_index(save, methods, frame_ids, grid)
+    doc = {
+        "evaluation": {
+            **evaluation,
+            "frames": len(frame_ids),
+            "frame_ids": frame_ids,
+            "seed": seed,
+            "reference": "preprocessed LiDAR (grid box + field of view, ground removed)",
+            "grid": {"point_range": list(grid.point_range), "voxel_size": list(grid.voxel_size), "fov_deg": grid.fov_deg},
+            "saved_clouds": None if save is None else str(save),
+        },
+        "machine": machine_info(sgemm=False).to_json(),
+        "methods": [m.describe() for m in methods],
+        "summary": summary,
+        "agreement": agreement(summary, methods),
+        "margins": margins(summary, methods),
+        "pictures": pics,
+        "per_frame": per_frame(run),
+    }
+    write_json(out / "results.json", doc)
+    write_text(out / "results.md", quality_markdown(doc))
+    return doc
