@@ -31,7 +31,7 @@ from msdnet.runtime.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.pointcloud import PointCloud
 
 KIND_LABELS = {"student": "MSDNet", "r2ldm": "R2LDM"}  # model kind -> name in the tables
-ROLES = ("radar", "msdnet", "r2ldm", "ablation", "lidar")  # what a row stands for in reports
+ROLES = ("radar", "r2ldm", "msdnet", "ablation", "lidar")  # what a row stands for, in table order
 
 
 @dataclass(frozen=True)
@@ -196,8 +196,9 @@ def build_methods(
     ablations: list[str],
     settings: RunSettings,
 ) -> list[Method]:
-    """Raw radar, then ``models`` (artifact folders, onnxruntime), ``checkpoints`` (torch) and
-    ``ablations`` (NAME=DIR, artifact or checkpoint). Names made unique by the folder name."""
+    """Raw radar, ``models`` (artifact folders, onnxruntime), ``checkpoints`` (torch) and
+    ``ablations`` (NAME=DIR, artifact or checkpoint), ordered by role (radar, R2LDM, MSDNet,
+    ablations; onnxruntime before torch within a role). Repeated names get the folder name."""
     methods: list[Method] = [RawRadar()]
     for folder in models:
         if not is_artifact(folder):
@@ -205,6 +206,7 @@ def build_methods(
         methods.append(PipelineMethod(folder, settings))
     methods += [TorchMethod(path, settings) for path in checkpoints]
     methods += [open_model(folder, settings, name) for name, folder in map(parse_ablation, ablations)]
+    methods.sort(key=lambda m: (ROLES.index(m.role), m.role != "ablation" and m.backend != "onnxruntime"))
     _make_unique(methods)
     return methods
 

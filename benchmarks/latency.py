@@ -128,8 +128,15 @@ def _notes(res: dict[str, Any]) -> list[str]:
             "loses its time slices on a loaded machine (onnxruntime runs with spinning off); "
             "onnx_over_best_torch compares against the faster setting."
         )
-    if max(res["machine"]["loadavg_start"][0], res["machine"]["loadavg_end"][0]) > 1.5 * res["threads"]:
-        notes.append("the machine was busy with other work (load average above the core count).")
+    m = res["machine"]
+    load = max(m["loadavg_start"][0], m["loadavg_end"][0])
+    if load > m["logical_cores"]:
+        notes.append(
+            f"load average up to {load:.1f} on {m['logical_cores']} cores: other work shared the CPU, "
+            "so absolute times are upper bounds (the min columns are the least disturbed runs)."
+        )
+    if res["table3"]["quality"] and res["models"]["msdnet"]["weights"] == "random":
+        notes.append("Table III quality was computed with random weights: it says nothing of MSDNet.")
     return notes
 
 
@@ -226,6 +233,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "onnx_over_torch": torch_res.get("onnx_over_torch", float("nan")),
             "onnx_over_best_torch": torch_res.get("onnx_over_best_torch", float("nan")),
             "voxelize_numba_speedup": vox["speedup"],
+            "voxelize_numba_speedup_100k": vox["speedup_100k"],
             "voxelize_rulebooks_numba_speedup": vox["speedup_with_rulebooks"],
             "loop_overhead_share": main["loop_overhead_share"],
             "step_flops_over_peak": main["step_graph"]["flops_over_peak"],

@@ -25,12 +25,14 @@ from msdnet.benchmarks.numpy_reference import down_rulebook_numpy, subm_rulebook
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.session import device_of
 from msdnet.runtime.voxelize import voxelize
 from msdnet.runtime.voxelize import warmup as numba_warmup
 from msdnet.training.batch import make_encoder_input
 
+Scan = np.ndarray | PointCloud  # (N, C) float32 in the model's columns, or a named cloud
 # results.json stage key -> Pipeline.timings keys summed into it
 STAGES: dict[str, tuple[str, ...]] = {
     "voxelize_rulebooks": ("prepare", "voxelize"),
@@ -88,7 +90,7 @@ def synthetic_radar(columns: Sequence[str], grid: GridConfig, n: int = 300, seed
     return pts.astype(np.float32)
 
 
-def calibrate_threshold(pipe: Pipeline, points: np.ndarray, target: int, seed: int = 0) -> float:
+def calibrate_threshold(pipe: Pipeline, points: Scan, target: int, seed: int = 0) -> float:
     """Occupancy threshold that leaves about ``target`` decoded points on ``points``: one run at a
     near-zero threshold, then the (target + 1)-th largest occupancy (also warms the pipeline)."""
     conf = pipe(points, threshold=1e-6, seed=seed).confidence  # (M,) occupancy of the kept voxels
@@ -111,7 +113,7 @@ class StageRuns:
 
 
 def time_stages(
-    pipe: Pipeline, points: np.ndarray, steps: int | None, threshold: float, repeats: int, seed: int = 0
+    pipe: Pipeline, points: Scan, steps: int | None, threshold: float, repeats: int, seed: int = 0
 ) -> StageRuns:
     """Run ``pipe`` ``repeats`` times (already warm) and collect the STAGES times."""
     runs = StageRuns({k: [] for k in STAGES})
@@ -167,7 +169,7 @@ class PlainRun:
     step_feeds: list[dict[str, np.ndarray]]  # step-graph inputs of every loop step, in order
 
 
-def plain_run(pipe: Pipeline, points: np.ndarray, steps: int | None = None, seed: int = 0) -> PlainRun:
+def plain_run(pipe: Pipeline, points: Scan, steps: int | None = None, seed: int = 0) -> PlainRun:
     """The same arithmetic as ``pipe(points, steps, seed=seed)`` without IOBinding, keeping every
     step's inputs (INT8 calibration data). Noise: ``default_rng(seed)`` as the pipeline draws it."""
     art = pipe.artifact
@@ -194,7 +196,7 @@ def plain_run(pipe: Pipeline, points: np.ndarray, steps: int | None = None, seed
 def torch_eager(
     model: torch.nn.Module,
     pipe: Pipeline,
-    points: np.ndarray,
+    points: Scan,
     steps: int | None,
     threads: int,
     repeats: int,
@@ -224,7 +226,8 @@ def torch_eager(
 
 def voxelize_figures(grid: GridConfig, columns: int, max_voxels: int, repeats: int) -> dict[str, float]:
     """Median ms of a 300-point radar scan through the voxelizer alone and through voxelizer +
-    every encoder rulebook, numba against the numpy references, and both speedups."""
+    every encoder rulebook, and of a 100k-point LiDAR-like cloud through the voxelizer: numba
+    against the numpy references, with the speedups (numpy / numba)."""
     numba_warmup()
     pts = synthetic_radar(("x", "y", "z", *[f"f{i}" for i in range(3, columns)]), grid, 300, seed=1)
 
@@ -250,8 +253,14 @@ def voxelize_figures(grid: GridConfig, columns: int, max_voxels: int, repeats: i
             lambda: rulebooks(voxelize_numpy, subm_rulebook_numpy, down_rulebook_numpy), reps_np
         ),
     }
+    from msdnet.benchmarks.voxelize_bench import lidar_like_cloud
+
+    big = lidar_like_cloud(100000, np.random.default_rng(2))  # (N, 4) [x, y, z, intensity]
+    fig["numba_100k_ms"] = timed(lambda: voxelize(big, grid, 60000), max(3, repeats // 3))
+    fig["numpy_100k_ms"] = timed(lambda: voxelize_numpy(big, grid, 60000), 3)
     out: dict[str, float] = {"points": 300}
     out |= {k: float(np.median(v) * 1e3) for k, v in fig.items()}
+    out["speedup_100k"] = out["numpy_100k_ms"] / out["numba_100k_ms"]
     out["speedup"] = out["numpy_ms"] / out["numba_ms"]
     out["speedup_with_rulebooks"] = out["numpy_with_rulebooks_ms"] / out["numba_with_rulebooks_ms"]
     return out

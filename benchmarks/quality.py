@@ -77,6 +77,15 @@ def xy_range(grid: GridConfig) -> tuple[float, float, float, float]:
     return (r[0], r[1], r[3], r[4])
 
 
+def grid_dict(grid: GridConfig) -> dict[str, Any]:
+    """The grid for results.json: point_range (m), voxel_size (m), fov_deg."""
+    return {
+        "point_range": list(grid.point_range),
+        "voxel_size": list(grid.voxel_size),
+        "fov_deg": grid.fov_deg,
+    }
+
+
 def _save_cloud(folder: Path, frame_id: str, xyz: np.ndarray) -> None:
     write_cloud(folder / f"{frame_id}.npy", PointCloud(xyz, ("x", "y", "z")))
 
@@ -207,7 +216,7 @@ def write_save_index(save: Path, methods: list[Method], frame_ids: list[str], gr
         "reference": {"key": LIDAR_KEY, "what": "preprocessed LiDAR (grid box + FOV, ground removed)"},
         "methods": [{"key": m.key, "name": m.name} for m in methods],
         "frames": frame_ids,
-        "grid": {"point_range": list(grid.point_range), "voxel_size": list(grid.voxel_size), "fov_deg": grid.fov_deg},
+        "grid": grid_dict(grid),
     }
     target = save / "index.json"
     with atomic_output(target) as tmp:
@@ -271,7 +280,7 @@ def run_quality(
             "frame_ids": frame_ids,
             "seed": seed,
             "reference": "preprocessed LiDAR (grid box + field of view, ground removed)",
-            "grid": {"point_range": list(grid.point_range), "voxel_size": list(grid.voxel_size), "fov_deg": grid.fov_deg},
+            "grid": grid_dict(grid),
             "saved_clouds": None if save is None else str(save),
         },
         "machine": machine_info(sgemm=False).to_json(),

@@ -84,6 +84,14 @@ def fmt(x: Any, digits: int = 3, scale: float = 1.0) -> str:
     return f"{v:.{digits}f}" if math.isfinite(v) else "–"
 
 
+def metric_label(key: str) -> str:
+    """The name of a metric key in tables: ``fscore@0.1`` -> "F@0.1 m (↑)", ``cd`` -> "CD (m) (↓)"."""
+    if key.startswith("fscore@"):
+        return f"F@{key.split('@')[1]} m (↑)"
+    labels = {"cd": "CD (m)", "cd_squared": "CD² (m²)", "mhd": "MHD (m)", "jsd": "JSD", "mmd": "MMD"}
+    return f"{labels.get(key, key)} (↓)"
+
+
 def md_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
     """Markdown table lines (first column left-aligned, the rest right-aligned)."""
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" + "---:|" * (len(headers) - 1)]
@@ -100,7 +108,12 @@ def _quality_rows(doc: dict[str, Any]) -> list[list[str]]:
         rows.append(
             [m["name"], fmt(s["cd"]), fmt(s["cd_squared"]), fmt(s["mhd"])]
             + [fmt(s[k]) for k in FSCORE_KEYS]
-            + [fmt(s["jsd"]), fmt(s["mmd"], 2, 1e4), fmt(s["points"], 0), f"{s['frames']} ({s['empty_frames']})"]
+            + [
+                fmt(s["jsd"]),
+                fmt(s["mmd"], 2, 1e4),
+                fmt(s["points"], 0),
+                f"{s['frames']} ({s['empty_frames']})",
+            ]
         )
     return rows
 
@@ -147,15 +160,19 @@ def quality_markdown(doc: dict[str, Any]) -> str:
         rows = []
         for k, r in mg["metrics"].items():
             bar = "–" if r["bar"] is None else f"{r['bar']:+.0f} %"
-            rows.append([k, fmt(r["percent"], 1) + " %", bar, fmt(r["met"])])
-        out += md_table(["metric", "change", "bar", "met"], rows)
+            vals = [fmt(doc["summary"][mg[w]][k], 4) for w in ("msdnet", "r2ldm")]
+            rows.append([metric_label(k), *vals, fmt(r["percent"], 1) + " %", bar, fmt(r["met"])])
+        out += md_table(["metric", "MSDNet", "R2LDM", "change", "bar", "met"], rows)
     out += ["", "## Paper context (MSDNet, VoD)", ""]
     rows = [
         [n, fmt(v["cd"], 2), fmt(v["mhd"], 4), fmt(v["fscore"], 2), fmt(v["jsd"], 2), fmt(v["mmd"], 2, 1e4)]
         for n, v in PAPER_TABLE1_VOD.items()
     ]
     out += ["Table I:", ""] + md_table(["Method", "CD", "MHD (m)", "F-score", "JSD", "MMD (×10⁻⁴)"], rows)
-    rows = [[n, fmt(v["cd"], 2), fmt(v["mhd"], 4), fmt(v["jsd"], 2), fmt(v["mmd"], 2, 1e4)] for n, v in PAPER_TABLE2.items()]
+    rows = [
+        [n, fmt(v["cd"], 2), fmt(v["mhd"], 4), fmt(v["jsd"], 2), fmt(v["mmd"], 2, 1e4)]
+        for n, v in PAPER_TABLE2.items()
+    ]
     out += ["", "Table II:", ""] + md_table(["Method", "CD", "MHD (m)", "JSD", "MMD (×10⁻⁴)"], rows)
     out += ["", "Paper margins MSDNet vs R2LDM: CD −15.0 %, MHD −65.8 %, F-score +44.4 %.", "", PAPER_NOTE]
     if doc.get("pictures"):
@@ -165,7 +182,11 @@ def quality_markdown(doc: dict[str, Any]) -> str:
 
 
 def picture_strip(
-    path: Path, panels: Sequence[tuple[str, np.ndarray, str]], grid: GridConfig, title: str = "", dpi: int = 100
+    path: Path,
+    panels: Sequence[tuple[str, np.ndarray, str]],
+    grid: GridConfig,
+    title: str = "",
+    dpi: int = 100,
 ) -> Path:
     """One PNG with a BEV panel per (label, points (N, >=2) [x, y, ...] radar frame, colour).
 
@@ -184,10 +205,14 @@ def picture_strip(
         for sign in (-1.0, 1.0):
             a = np.radians(grid.fov_deg) * sign
             ax.plot([0.0, reach * np.sin(a)], [0.0, reach * np.cos(a)], "--", c="tab:blue", lw=0.6)
-        ax.set_xlim(y1, y0)  # y left is drawn to the left
-        ax.set_ylim(x0, x1)
+        my, mx = 0.03 * (y1 - y0), 0.03 * (x1 - x0)
+        ax.set_xlim(y1 + my, y0 - my)  # y left is drawn to the left
+        ax.set_ylim(x0 - mx, x1 + mx)
+        ax.set_xlabel("y (m, left)", fontsize=8)
         ax.set_aspect("equal", adjustable="box")
         ax.set_title(f"{label} ({len(p)})", fontsize=9)
+        if i == 0:
+            ax.set_ylabel("x (m, forward)", fontsize=8)
         ax.tick_params(labelsize=7)
     if title:
         fig.suptitle(title, fontsize=10)
@@ -195,3 +220,83 @@ def picture_strip(
     with atomic_output(path) as tmp:
         fig.savefig(tmp, format="png")
     return Path(path)
+
+
+# MSDNet paper, Table V (VoD odometry, mean over sequences 03/04/22): t_rel, r_rel as printed
+PAPER_TABLE5_MEAN = {"R2LDM": (0.56, 0.66), "MSDNet": (0.24, 0.46)}
+# MSDNet paper, Table VI (in-house place recognition): Recall@1/3/5 in percent
+PAPER_TABLE6 = {
+    "4D radar": (47.06, 64.14, 71.16),
+    "R2LDM": (50.89, 65.13, 70.80),
+    "MSDNet": (58.54, 67.68, 72.71),
+}
+
+
+def _sequence_line(doc: dict[str, Any]) -> str:
+    ev = doc["evaluation"]
+    seqs = ", ".join(
+        f"{s['index']} ({s['frames']} frames{', loop' if s['has_loop'] else ''})" for s in ev["sequences"]
+    )
+    return f"Data: {ev['data']}; sequences {seqs}. Seed {ev['seed']}. Clouds: {ev['clouds']}."
+
+
+def odometry_markdown(doc: dict[str, Any]) -> str:
+    """results.md of ``msdnet-bench odometry``."""
+    out = ["# GICP odometry (small_gicp, scan to scan)", "", _sequence_line(doc), ""]
+    rows = []
+    for m in doc["methods"]:
+        r = doc["results"][m["name"]]["overall"]
+        rows.append(
+            [
+                m["name"],
+                fmt(r["translation_m"], 4),
+                fmt(r["rotation_deg"], 4),
+                fmt(r["translation_pct"], 2),
+                fmt(r["pairs"]),
+            ]
+        )
+    heads = ["Method", "t_rel (m / frame)", "r_rel (° / frame)", "t_rel (% of distance)", "frame pairs"]
+    out += md_table(heads, rows)
+    out += ["", "Per sequence, t_rel (m / frame) / r_rel (° / frame):", ""]
+    seq_ids = [str(s["index"]) for s in doc["evaluation"]["sequences"]]
+    rows = []
+    for m in doc["methods"]:
+        per = doc["results"][m["name"]]["sequences"]
+        rows.append(
+            [m["name"]]
+            + [f"{fmt(per[i]['translation_m'], 4)} / {fmt(per[i]['rotation_deg'], 4)}" for i in seq_ids]
+        )
+    out += md_table(["Method"] + [f"seq {i}" for i in seq_ids], rows)
+    out += [
+        "",
+        "Paper context (MSDNet Table V, VoD, mean of sequences 03/04/22; units as printed there):",
+        "",
+    ]
+    out += md_table(
+        ["Method", "t_rel", "r_rel"], [[n, fmt(t, 2), fmt(r, 2)] for n, (t, r) in PAPER_TABLE5_MEAN.items()]
+    )
+    return "\n".join(out) + "\n"
+
+
+def place_markdown(doc: dict[str, Any]) -> str:
+    """results.md of ``msdnet-bench place``."""
+    ev = doc["evaluation"]
+    ks = [str(k) for k in ev["ks"]]
+    out = ["# ScanContext place recognition", "", _sequence_line(doc), ""]
+    out += [
+        f"A query is a frame with a true match (within {ev['revisit_radius']:g} m) among the frames "
+        f"more than {ev['exclude_recent']} frames before it; queries without one are skipped.",
+        "",
+    ]
+    rows = []
+    for m in doc["methods"]:
+        r = doc["results"][m["name"]]["overall"]
+        rows.append([m["name"]] + [fmt(r["recall"][k], 1, 100.0) for k in ks] + [fmt(r["queries"])])
+    out += md_table(["Method"] + [f"Recall@{k} (%)" for k in ks] + ["queries"], rows)
+    if all(doc["results"][m["name"]]["overall"]["queries"] == 0 for m in doc["methods"]):
+        out += ["", "No query had a true match: simulate longer sequences with loops (closures need "]
+        out[-1] += "150 frames), or lower --exclude-recent."
+    out += ["", "Paper context (MSDNet Table VI, in-house dataset, %):", ""]
+    rows = [[n] + [fmt(v, 2) for v in vals] for n, vals in PAPER_TABLE6.items()]
+    out += md_table(["Method", "Recall@1", "Recall@3", "Recall@5"], rows)
+    return "\n".join(out) + "\n"

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from msdnet.runtime.sim import materials as mt
-from msdnet.runtime.sim.raycast import GROUND, MAT, build_sectors, cast_rays
+from msdnet.runtime.sim.raycast import build_sectors, cast_rays, hit_materials
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ def scan(
     )
     keep = np.flatnonzero(np.isfinite(t) & (t >= cfg.min_range))
     t, hit, cos_i = t[keep], hit[keep], cos_i[keep]
-    mat = np.where(hit == GROUND, mt.ASPHALT, prims[np.maximum(hit, 0), MAT]).astype(np.int64)
+    mat = hit_materials(prims, hit)
     refl = mt.material_array("lidar_reflectivity")[mat]  # (N,)
     speckle = rng.lognormal(0.0, 0.25, size=len(t))
     intensity = 255.0 * refl * (0.25 + 0.75 * cos_i) * np.exp(-t / 150.0) * speckle

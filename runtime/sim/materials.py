@@ -9,12 +9,15 @@ processing losses) and were tuned so that simulated scans land in the VoD statis
 (``msdnet.runtime.stats``). Their ordering is the physical one: per unit area at normal
 incidence, metal (13.5 dB diffuse, +37.5 dB specular lobe) >> facade (4.5) > vegetation (1.5)
 > people (-6.5) >> asphalt (-12.5, and nearly always seen at grazing incidence).
+"""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
+# material ids (row index in MATERIALS)
 ASPHALT = 0
 CONCRETE = 1
 FACADE = 2
@@ -44,16 +47,16 @@ class Material:
 
 
 MATERIALS: tuple[Material, ...] = (
-    Material("asphalt", 0.22, 0.0, 0.0, -12.5, -35.5, 3.0, 0.0, 0.0, 0.0),
-    Material("concrete", 0.35, 0.0, 0.0, -1.5, 8.5, 4.0, 0.0, 0.0, 0.02),
-    Material("facade", 0.45, 0.0, 0.0, 4.5, 12.5, 5.0, 0.0, 0.0, 0.08),
-    Material("glass", 0.08, 0.0, 0.0, -0.5, 18.5, 3.0, 0.0, 0.0, 0.08),
-    Material("metal", 0.55, 0.0, 0.0, 13.5, 37.5, 8.0, 0.0, 0.0, 0.3),
-    Material("vegetation", 0.4, 0.0, 0.7, 1.5, -55.5, 1.0, 0.0, 2.0, 0.02),
-    Material("wood", 0.35, 0.0, 0.0, 1.5, 6.5, 6.0, 0.0, 0.0, 0.0),
-    Material("human", 0.3, 0.0, 0.0, -6.5, -1.0, 10.0, 0.0, 0.0, 0.0),
-    Material("fence", 0.5, 0.55, 0.0, 6.5, 20.5, 4.0, 0.35, 0.0, 0.2),
-    Material("sign", 0.98, 0.0, 0.0, 10.5, 34.5, 5.0, 0.0, 0.0, 0.0),
+    Material("asphalt", 0.3, 0.0, 0.0, -12.5, -35.5, 3.0, 0.0, 0.0, 0.0),
+    Material("concrete", 0.45, 0.0, 0.0, -1.5, 8.5, 4.0, 0.0, 0.0, 0.02),
+    Material("facade", 0.55, 0.0, 0.0, 4.5, 12.5, 5.0, 0.0, 0.0, 0.08),
+    Material("glass", 0.1, 0.0, 0.0, -0.5, 18.5, 3.0, 0.0, 0.0, 0.08),
+    Material("metal", 0.7, 0.0, 0.0, 13.5, 37.5, 8.0, 0.0, 0.0, 0.3),
+    Material("vegetation", 0.5, 0.0, 0.7, 1.5, -55.5, 1.0, 0.0, 2.0, 0.02),
+    Material("wood", 0.45, 0.0, 0.0, 1.5, 6.5, 6.0, 0.0, 0.0, 0.0),
+    Material("human", 0.4, 0.0, 0.0, -6.5, -1.0, 10.0, 0.0, 0.0, 0.0),
+    Material("fence", 0.6, 0.55, 0.0, 6.5, 20.5, 4.0, 0.35, 0.0, 0.2),
+    Material("sign", 1.0, 0.0, 0.0, 10.5, 34.5, 5.0, 0.0, 0.0, 0.0),
 )
 
 GLINT_CELL = 0.6  # m, edge of the world-fixed cubes that may hold a glint (radar.py, step 2)

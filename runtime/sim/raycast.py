@@ -20,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from msdnet.runtime.sim.materials import ASPHALT
+
 # primitive kinds
 BOX = 0
 CYLINDER = 1
@@ -43,6 +45,17 @@ N_COLS = 13
 
 NO_HIT = -1  # primitive index of a ray that hit nothing
 GROUND = -2  # primitive index of a ray that hit the ground plane
+
+
+def hit_materials(prims: np.ndarray, hit: np.ndarray) -> np.ndarray:
+    """Material id of each hit (N,) int64: the primitive's, asphalt for the ground.
+
+    prims: (P, N_COLS); hit: (N,) primitive indices or GROUND (no NO_HIT expected).
+    """
+    mat = np.full(len(hit), ASPHALT, dtype=np.int64)
+    obj = hit >= 0
+    mat[obj] = prims[hit[obj], MAT].astype(np.int64)
+    return mat
 
 
 @njit(cache=True)

@@ -20,7 +20,7 @@ import numpy as np
 
 from msdnet.runtime.sim import materials as mt
 from msdnet.runtime.sim.raycast import BOX, CX, CY, CYLINDER, ELLIPSOID, N_COLS, VX, VY
-from msdnet.runtime.sim.trajectory import StreetGrid, Trajectory
+from msdnet.runtime.sim.trajectory import LANE_OFFSET, StreetGrid, Trajectory
 
 SCENE_RADIUS = 140.0  # m, blocks farther than this from every route sample are not built
 
@@ -145,7 +145,9 @@ def _block_side(
         for k in range(int(rng.integers(3, 11))):
             p = corner + t * (u + 0.6 * k) + n * float(rng.uniform(1.0, 1.6))
             rows.box(p, kerb + 0.05, kerb + 1.0, 0.85, 0.05, yaw + np.pi / 2, mt.FENCE, rows.obj())
-    if grid.road_half >= 5.4 and rng.random() < 0.6:  # parked cars along the kerb
+    # parked cars along the kerb, on streets wide enough that the parking lane (inner edge
+    # road_half - 1.85) clears the ego lane (outer edge LANE_OFFSET * road_half + 0.9)
+    if grid.road_half >= 5.4 and rng.random() < 0.6:
         u = float(rng.uniform(6.0, 10.0))
         while u < length - 6.0:
             if rng.random() < 0.75:
@@ -182,7 +184,7 @@ def _blocks(rows: _Rows, rng, grid: StreetGrid, route_xy: np.ndarray) -> None:
 def _movers(rows: _Rows, rng, grid: StreetGrid, traj: Trajectory, busy: float) -> int:
     """Moving cars, cyclists and pedestrians the ego meets; returns how many."""
     duration = max(float(traj.time[-1]), 1.0)
-    lane = 0.45 * grid.road_half
+    lane = LANE_OFFSET * grid.road_half
     n_total = 0
     counts = {
         "car": rng.poisson(busy * (3.0 + 1.0 * duration)),

@@ -76,9 +76,10 @@ class SequenceSim:
         self.lidar_cfg = lidar_cfg or lidar.LidarConfig()
         self.radar = radar.RadarSim(radar_cfg or radar.RadarConfig())
         self.lidar_dirs = lidar.beam_directions(self.lidar_cfg)
-        self.odom_from_world = np.linalg.inv(self._vehicle(0))
+        self.odom_from_world = np.linalg.inv(self.vehicle_pose(0))
 
-    def _vehicle(self, f: int) -> np.ndarray:
+    def vehicle_pose(self, f: int) -> np.ndarray:
+        """(4, 4) T_world<-vehicle at frame ``f`` (world = map frame, ground at z = 0)."""
         x, y = self.traj.xy[f]
         return rig.vehicle_pose(float(x), float(y), float(self.traj.yaw[f]))
 
@@ -88,7 +89,7 @@ class SequenceSim:
         rng = np.random.default_rng(fs)
         salt = int(fs.generate_state(1, np.uint64)[0])
         prims = self.scene.at(float(self.traj.time[f]))
-        vehicle = self._vehicle(f)
+        vehicle = self.vehicle_pose(f)
         lidar_w = vehicle @ rig.lidar_in_vehicle()
         radar_w = lidar_w @ rig.radar_in_lidar()
         cloud = lidar.scan(prims, lidar_w, self.lidar_dirs, self.lidar_cfg, rng, salt)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 FRAME_DT = 0.1  # s, 10 Hz frames
+LANE_OFFSET = 0.45  # lane centre from the street centre line, as a fraction of road_half
 
 
 @dataclass(frozen=True)
@@ -95,7 +96,7 @@ def plan_route(
 
 def _lane_polyline(grid: StreetGrid, route: list[tuple[np.ndarray, int]]) -> np.ndarray:
     """Corner points (K, 2) of the right-hand lane path through the route's intersections."""
-    off = 0.5 * grid.road_half
+    off = LANE_OFFSET * grid.road_half
     pts = []
     for idx, (pos, heading) in enumerate(route):
         d_out = _DIRS[heading]
@@ -164,7 +165,7 @@ def drive(rng: np.random.Generator, grid: StreetGrid, n_frames: int, loop: bool,
     1.5 m/s^2 and braking at 2.5 m/s^2; ~30 % of intersections get a stop of 1-4 s before them.
     """
     duration = n_frames * FRAME_DT
-    route = plan_route(rng, grid, cruise * duration + 80.0, loop)
+    route = plan_route(rng, grid, 1.2 * cruise * duration + 80.0, loop)
     corners = _lane_polyline(grid, route)
     radii = np.where(rng.random(len(corners)) < 0.5, 7.0, 9.0)
     ds = 0.05
