@@ -1,9 +1,10 @@
-"""``msdnet-bench``: the benchmark commands (voxelize; quality, latency, ... join later)."""
+"""``msdnet-bench``: the benchmark commands: voxelize, quality, odometry, place, latency."""
 
 from __future__ import annotations
 
 import click
 
+from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
 
 
@@ -13,3 +14,6 @@ def main() -> None:
 
 
 main.add_command(voxelize_command)
+main.add_command(quality_command)
+main.add_command(odometry_command)
+main.add_command(place_command)

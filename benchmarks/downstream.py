@@ -224,8 +224,7 @@ def run_downstream(
     elif task == "place":
         opts = place_options or {}
         results = place_results(sc, **opts)
-        task_info = {**{k: list(v) if isinstance(v, tuple) else v for k, v in opts.items()}}
-        task_info["scan_context"] = ScanContextConfig().__dict__
+        task_info = {**opts, "scan_context": ScanContextConfig().__dict__}
     else:
         raise ValueError(f"task must be odometry or place, got {task!r}")
     lidar = [

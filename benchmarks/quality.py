@@ -26,6 +26,7 @@ from tqdm import tqdm
 from msdnet.benchmarks.eval_methods import Method, primary
 from msdnet.benchmarks.metrics import FSCORE_THRESHOLDS, FrameScores, score_frame
 from msdnet.runtime.datasets import FrameDataset
+from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.io import atomic_output, write_cloud
 from msdnet.runtime.pointcloud import PointCloud
@@ -159,10 +160,10 @@ def relative_difference(a: float, b: float) -> float:
 
 
 def agreement(summary: dict[str, dict[str, float]], methods: list[Method]) -> list[dict[str, Any]]:
-    """torch vs onnxruntime of the same model kind and role: the largest relative difference of
-    any mean metric (and points per frame); ``ok`` when within ``AGREEMENT_TOL``."""
+    """torch vs onnxruntime of the same model kind (ablations are not paired): the largest
+    relative difference of any mean metric (and points per frame); ``ok`` within ``AGREEMENT_TOL``."""
     rows = []
-    for t in (m for m in methods if m.backend == "torch"):
+    for t in (m for m in methods if m.backend == "torch" and m.role != "ablation"):
         onnx = [m for m in methods if m.backend == "onnxruntime" and m.kind == t.kind and m.role == t.role]
         if len(onnx) != 1:
             continue
@@ -257,7 +258,6 @@ def run_quality(
     """
     from msdnet.benchmarks.machine import machine_info
     from msdnet.benchmarks.quality_report import picture_strip, quality_markdown, write_json, write_text
-    from msdnet.runtime.errors import MsdnetError
 
     frame_ids = pick_frames(list(ds.frame_ids), max_frames)
     if not frame_ids:

@@ -14,7 +14,7 @@ from export_helpers import make_artifact
 
 from msdnet.benchmarks.flops import graph_flops
 from msdnet.benchmarks.latency_cli import latency_command
-from msdnet.benchmarks.latency_models import int8_artifact
+from msdnet.benchmarks.latency_models import given_pair, int8_artifact
 from msdnet.benchmarks.latency_quality import load_frames, quality_by_steps
 from msdnet.benchmarks.latency_timing import (
     STAGES,
@@ -24,6 +24,7 @@ from msdnet.benchmarks.latency_timing import (
 )
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import load_artifact
+from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.pipeline import Pipeline
 
 RATIOS = (
@@ -148,6 +149,24 @@ def test_quality_by_steps_on_a_real_frame(pipe, vod_root):
     assert [r["steps"] for r in rows] == [1, 3]
     for r in rows:
         assert r["frames"] == 1 and r["points"] > 0 and 0 < r["cd"] < 20 and 0 <= r["jsd"] <= 1
+
+
+def test_a_given_model_brings_its_torch_twin_and_a_random_r2ldm(tmp_path):
+    from export_helpers import make_checkpoint
+
+    from msdnet.export.cli import main as export_main
+
+    ckpt = make_checkpoint(tmp_path / "ckpt", "student")
+    art = tmp_path / "art"
+    r = CliRunner().invoke(export_main, [str(ckpt), "--out", str(art), "--threads", "1"])
+    assert r.exit_code == 0, r.output
+    pair = given_pair(art, None, tmp_path / "scratch")
+    assert pair.msdnet.weights == "trained" and pair.msdnet.torch_model is not None
+    assert pair.msdnet.params == load_artifact(art).manifest["parameters"]["total"] > 0
+    assert pair.r2ldm.weights == "random" and pair.r2ldm.kind == "r2ldm"
+    assert load_artifact(pair.r2ldm.folder).grid == load_artifact(art).grid
+    with pytest.raises(MsdnetError, match="expected student"):
+        given_pair(pair.r2ldm.folder, None, tmp_path / "scratch2")
 
 
 @pytest.mark.parametrize(
