@@ -145,11 +145,11 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     if (cfg.data is None) != (cfg.dataset is None):
         raise MsdnetError("--data", "--data and --dataset go together")
     load_start = os.getloadavg()
-    log("measuring the machine (sgemm) ...")
-    machine = machine_info().to_json()
     with tempfile.TemporaryDirectory(prefix="msdnet-latency-") as tmp:
         scratch = Path(tmp)
         pair = _models(cfg, scratch)
+        log("measuring the machine (sgemm) ...")
+        machine = machine_info().to_json()
         pipes = {k: Pipeline.from_dir(getattr(pair, k).folder, cfg.provider, cfg.threads) for k in KINDS}
         for p in pipes.values():
             p.warmup()

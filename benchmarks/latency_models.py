@@ -42,7 +42,7 @@ class BenchModel:
 
     folder: Path  # artifact folder (manifest.json + graphs)
     kind: str  # artifact kind: "student" or "r2ldm"
-    weights: str  # "random" or "trained" (from a checkpoint / a given folder)
+    weights: str  # "random" (initialised here) or "given" (the user's exported folder)
     torch_model: torch.nn.Module | None  # same weights in torch (eval), None when unavailable
     params: int  # deployed parameters (manifest "parameters.total")
 
@@ -120,7 +120,7 @@ def _given(folder: Path, kind: str) -> BenchModel:
     if art.kind != kind:
         raise MsdnetError(folder, f"is a {art.kind} model, expected {kind}")
     params = int(art.manifest.get("parameters", {}).get("total", 0))
-    return BenchModel(folder, kind, "trained", _torch_twin(folder), params)
+    return BenchModel(folder, kind, "given", _torch_twin(folder), params)
 
 
 def given_pair(model: Path, r2ldm: Path | None, scratch: Path, seed: int = 0) -> ModelPair:
@@ -155,20 +155,25 @@ def quantize_step_graph(src: Path, dst: Path, feeds: Sequence[dict[str, np.ndarr
     ``feeds``: step-graph inputs recorded along a real DDIM loop) of the ONNX file ``src``."""
     from onnxruntime.quantization import QuantFormat, QuantType, quant_pre_process, quantize_static
 
-    logging.getLogger().setLevel(logging.ERROR)  # the quantizer warns per rank-1 constant
-    with tempfile.TemporaryDirectory(dir=dst.parent) as tmp:
-        pre = Path(tmp) / "pre.onnx"
-        quant_pre_process(str(src), str(pre))
-        quantize_static(
-            str(pre),
-            str(dst),
-            _StatesReader(feeds),
-            quant_format=QuantFormat.QDQ,
-            per_channel=True,
-            activation_type=QuantType.QUInt8,
-            weight_type=QuantType.QInt8,
-            op_types_to_quantize=list(QUANT_OPS),
-        )
+    root = logging.getLogger()
+    level = root.level
+    root.setLevel(logging.ERROR)  # the quantizer warns (root logger) per rank-1 constant
+    try:
+        with tempfile.TemporaryDirectory(dir=dst.parent) as tmp:
+            pre = Path(tmp) / "pre.onnx"
+            quant_pre_process(str(src), str(pre))
+            quantize_static(
+                str(pre),
+                str(dst),
+                _StatesReader(feeds),
+                quant_format=QuantFormat.QDQ,
+                per_channel=True,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+                op_types_to_quantize=list(QUANT_OPS),
+            )
+    finally:
+        root.setLevel(level)
 
 
 def int8_artifact(src: Path, dst: Path, feeds: Sequence[dict[str, np.ndarray]]) -> Path:

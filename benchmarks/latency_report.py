@@ -169,7 +169,7 @@ def _tables(res: dict[str, Any]) -> list[str]:
     rows = []
     for s in res["table3"]["steps"]:
         row = [s, PAPER_TABLE3[s][4], PAPER_TABLE3[s][0], sweep[s]["ms"], sweep[s]["loop_ms"]]
-        rows.append(row + ([qual[s][k] for k in keys] if qual else []))
+        rows.append(row + ([_fmt(qual[s][k], 3, "g") for k in keys] if qual else []))
     out += _table(head, rows)
     if not qual:
         out += ["", "Quality columns need a trained --model and --data/--dataset."]

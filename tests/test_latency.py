@@ -161,7 +161,7 @@ def test_a_given_model_brings_its_torch_twin_and_a_random_r2ldm(tmp_path):
     r = CliRunner().invoke(export_main, [str(ckpt), "--out", str(art), "--threads", "1"])
     assert r.exit_code == 0, r.output
     pair = given_pair(art, None, tmp_path / "scratch")
-    assert pair.msdnet.weights == "trained" and pair.msdnet.torch_model is not None
+    assert pair.msdnet.weights == "given" and pair.msdnet.torch_model is not None
     assert pair.msdnet.params == load_artifact(art).manifest["parameters"]["total"] > 0
     assert pair.r2ldm.weights == "random" and pair.r2ldm.kind == "r2ldm"
     assert load_artifact(pair.r2ldm.folder).grid == load_artifact(art).grid

@@ -3,7 +3,7 @@
 Determinism: the model is built after ``torch.manual_seed(seed)`` (same weights on every
 rank); the sample order of epoch ``e`` is the seeded permutation of ``EpochSampler``; and
 the torch / numpy / random generators are reseeded before every step from
-``(seed, rank, step)`` and before validation from ``(seed, rank, "val")``. No generator
+``(seed, rank, step)`` and before validation from ``(seed, rank, VAL_STREAM)``. No generator
 state has to be stored, and a run resumed from any checkpoint (epoch end or, with
 ``save_every``, mid-epoch) continues bit for bit like the uninterrupted run.
 
@@ -256,6 +256,7 @@ def deterministic_algorithms() -> Iterator[None]:
         torch.utils.deterministic.fill_uninitialized_memory = saved[2]
 
 
+@deterministic_algorithms()
 def train(
     model: torch.nn.Module,
     cfg: ModelConfig,
@@ -272,73 +273,21 @@ def train(
     Returns the state after the last epoch run; writes checkpoints and the log on rank 0.
     Raises NonFiniteLoss (all ranks) at the first NaN / Inf term.
     """
-    with deterministic_algorithms():
-        return _train(model, cfg, train_cfg, train_set, val_set, spec, collate_fn, info, metrics_fn)
-
-
-def _train(
-    model: torch.nn.Module,
-    cfg: ModelConfig,
-    train_cfg: TrainConfig,
-    train_set: Dataset,
-    val_set: Dataset,
-    spec: RunSpec,
-    collate_fn: Callable[[Sequence[Any]], Any],
-    info: DistInfo | None = None,
-    metrics_fn: MetricsFn | None = None,
-) -> CheckpointState:
-    info = info or DistInfo()
-    device = torch.device(spec.device)
-    model.to(device)
-    params = [p for p in model.parameters() if p.requires_grad]
-    bs = train_cfg.batch_size
-    sampler = EpochSampler(train_set, info, train_cfg.seed)
-    steps_per_epoch = math.ceil(len(sampler) / bs)
-    optimizer = torch.optim.Adam(params, lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
-    scheduler = torch.optim.lr_scheduler.OneCycleLR(
-        optimizer, max_lr=train_cfg.lr, total_steps=max(1, spec.epochs * steps_per_epoch)
-    )
-    if spec.resume:
-        state = _resume_state(spec, cfg, train_cfg, info, model, optimizer, scheduler)
-    else:
-        state = CheckpointState(
-            kind=spec.kind,
-            train=train_cfg,
-            epochs=spec.epochs,
-            teacher=spec.teacher,
-            dataset=spec.dataset,
-            world_size=info.world_size,
-        )
-    loader = DataLoader(
-        train_set,
-        batch_size=bs,
-        sampler=sampler,
-        collate_fn=collate_fn,
-        num_workers=train_cfg.num_workers,
-        persistent_workers=train_cfg.num_workers > 0,  # workers keep their frame caches
-    )
-    net = wrap_for_training(model, info)
-    log = JsonLog(spec.out / "log.jsonl") if info.is_main else None
-
-    def save(folder: str) -> None:
-        if info.is_main:
-            save_checkpoint(spec.out / folder, model, cfg, state, optimizer, scheduler)
-
+    run = _Run(model, cfg, train_cfg, train_set, spec, collate_fn, info or DistInfo())
+    state, log = run.state, run.log
     if log:
         log.write("start", kind=spec.kind, epoch=state.epoch, step=state.step,
-                  epochs=spec.epochs, world_size=info.world_size, resume=spec.resume,
+                  epochs=spec.epochs, world_size=run.info.world_size, resume=spec.resume,
                   train_frames=len(train_set), val_frames=len(val_set))  # fmt: skip
     done_here = 0
     try:
         while state.epoch < spec.epochs and (spec.stop_after is None or done_here < spec.stop_after):
             t0 = time.perf_counter()
-            record = _train_epoch(net, model, loader, sampler, optimizer, scheduler, params,
-                                  state, spec, train_cfg, info, device, log, save)  # fmt: skip
-            record.update(
-                evaluate(model, val_set, collate_fn, train_cfg, info, device, metrics_fn, spec.metric_frames)
-            )
+            record = run.epoch()
+            record.update(evaluate(model, val_set, collate_fn, train_cfg, run.info, run.device,
+                                   metrics_fn, spec.metric_frames))  # fmt: skip
             record.update(occupancy_scores(record))
-            record["lr"] = scheduler.get_last_lr()[0]
+            record["lr"] = run.scheduler.get_last_lr()[0]
             record["seconds"] = round(time.perf_counter() - t0, 3)
             state.epoch += 1
             state.batch_in_epoch = 0
@@ -347,9 +296,9 @@ def _train(
             best = state.best_val_loss is None or val < state.best_val_loss
             if best:
                 state.best_val_loss = val
-            save("last")
+            run.save("last")
             if best:
-                save("best")
+                run.save("best")
             if log:
                 log.write("epoch", best=best, **record)
             done_here += 1
@@ -362,61 +311,95 @@ def _train(
     return state
 
 
-def _train_epoch(
-    net: torch.nn.Module,
-    model: torch.nn.Module,
-    loader: DataLoader,
-    sampler: EpochSampler,
-    optimizer: torch.optim.Optimizer,
-    scheduler: torch.optim.lr_scheduler.LRScheduler,
-    params: list[torch.nn.Parameter],
-    state: CheckpointState,
-    spec: RunSpec,
-    train_cfg: TrainConfig,
-    info: DistInfo,
-    device: torch.device,
-    log: JsonLog | None,
-    save: Callable[[str], None],
-) -> dict[str, Any]:
-    """One (possibly resumed) epoch of optimizer steps -> {"epoch", "step", "train_<term>"}."""
-    bs = train_cfg.batch_size
-    sampler.set_position(state.epoch, state.batch_in_epoch * bs)
-    model.train()
-    sums: dict[str, float] = {}
-    seen = 0
-    bar = tqdm(
-        loader,
-        total=math.ceil((len(sampler) + sampler.skip) / bs),
-        initial=state.batch_in_epoch,
-        desc=f"{spec.kind} epoch {state.epoch + 1}/{spec.epochs}",
-        disable=not info.is_main,
-        dynamic_ncols=True,
-    )
-    for batch in bar:
-        reseed(train_cfg.seed, info.rank, state.step)
-        batch = _to_device(batch, device)
-        losses = net(batch)
-        _check_finite(losses, state, info)
-        optimizer.zero_grad(set_to_none=True)
-        losses["loss"].backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(params, train_cfg.grad_clip)
-        optimizer.step()
-        scheduler.step()
-        state.step += 1
-        state.batch_in_epoch += 1
-        n = _batch_size(batch)
-        seen += n
-        for k, v in losses.items():
-            sums[k] = sums.get(k, 0.0) + float(v.detach()) * n
-        loss = float(losses["loss"].detach())
-        lr = scheduler.get_last_lr()[0]
-        bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2e}")
-        if log and spec.log_every and state.step % spec.log_every == 0:
-            log.write("step", epoch=state.epoch + 1, step=state.step, loss=loss,
-                      grad_norm=float(grad_norm), lr=lr)  # fmt: skip
-        if spec.save_every and state.step % spec.save_every == 0:
-            save("last")
-    bar.close()
-    record: dict[str, Any] = {"epoch": state.epoch + 1, "step": state.step}
-    record.update({f"train_{k}": v for k, v in _reduce_means(sums, seen, info).items()})
-    return record
+class _Run:
+    """The objects of one training run: optimizer, schedule, sampler, loader, state, log."""
+
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        cfg: ModelConfig,
+        train_cfg: TrainConfig,
+        train_set: Dataset,
+        spec: RunSpec,
+        collate_fn: Callable[[Sequence[Any]], Any],
+        info: DistInfo,
+    ) -> None:
+        self.model, self.cfg, self.train_cfg, self.spec, self.info = model, cfg, train_cfg, spec, info
+        self.device = torch.device(spec.device)
+        model.to(self.device)
+        self.params = [p for p in model.parameters() if p.requires_grad]  # not a frozen teacher
+        self.sampler = EpochSampler(train_set, info, train_cfg.seed)
+        steps_per_epoch = math.ceil(len(self.sampler) / train_cfg.batch_size)
+        self.optimizer = torch.optim.Adam(self.params, lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
+        self.scheduler = torch.optim.lr_scheduler.OneCycleLR(
+            self.optimizer, max_lr=train_cfg.lr, total_steps=max(1, spec.epochs * steps_per_epoch)
+        )
+        if spec.resume:
+            self.state = _resume_state(spec, cfg, train_cfg, info, model, self.optimizer, self.scheduler)
+        else:
+            self.state = CheckpointState(kind=spec.kind, train=train_cfg, epochs=spec.epochs,
+                                         teacher=spec.teacher, dataset=spec.dataset,
+                                         world_size=info.world_size)  # fmt: skip
+        self.loader = DataLoader(
+            train_set,
+            batch_size=train_cfg.batch_size,
+            sampler=self.sampler,
+            collate_fn=collate_fn,
+            num_workers=train_cfg.num_workers,
+            persistent_workers=train_cfg.num_workers > 0,  # workers keep their frame caches
+        )
+        self.net = wrap_for_training(model, info)
+        self.log = JsonLog(spec.out / "log.jsonl") if info.is_main else None
+
+    def save(self, folder: str) -> None:
+        """Checkpoint to ``out/<folder>`` (rank 0 only)."""
+        if self.info.is_main:
+            save_checkpoint(self.spec.out / folder, self.model, self.cfg, self.state,
+                            self.optimizer, self.scheduler)  # fmt: skip
+
+    def epoch(self) -> dict[str, Any]:
+        """One (possibly resumed) epoch of steps -> {"epoch", "step", "train_<term>": mean}.
+
+        After a mid-epoch resume the means cover the batches run since the resume.
+        """
+        state, spec, bs = self.state, self.spec, self.train_cfg.batch_size
+        self.sampler.set_position(state.epoch, state.batch_in_epoch * bs)
+        self.model.train()
+        sums: dict[str, float] = {}
+        seen = 0
+        bar = tqdm(
+            self.loader,
+            total=math.ceil((len(self.sampler) + self.sampler.skip) / bs),
+            initial=state.batch_in_epoch,
+            desc=f"{spec.kind} epoch {state.epoch + 1}/{spec.epochs}",
+            disable=not self.info.is_main,
+            dynamic_ncols=True,
+        )
+        for batch in bar:
+            reseed(self.train_cfg.seed, self.info.rank, state.step)
+            batch = _to_device(batch, self.device)
+            losses = self.net(batch)
+            _check_finite(losses, state, self.info)
+            self.optimizer.zero_grad(set_to_none=True)
+            losses["loss"].backward()
+            grad_norm = torch.nn.utils.clip_grad_norm_(self.params, self.train_cfg.grad_clip)
+            self.optimizer.step()
+            self.scheduler.step()
+            state.step += 1
+            state.batch_in_epoch += 1
+            n = _batch_size(batch)
+            seen += n
+            for k, v in losses.items():
+                sums[k] = sums.get(k, 0.0) + float(v.detach()) * n
+            loss = float(losses["loss"].detach())
+            lr = self.scheduler.get_last_lr()[0]
+            bar.set_postfix(loss=f"{loss:.4g}", lr=f"{lr:.2e}")
+            if self.log and spec.log_every and state.step % spec.log_every == 0:
+                self.log.write("step", epoch=state.epoch + 1, step=state.step, loss=loss,
+                               grad_norm=float(grad_norm), lr=lr)  # fmt: skip
+            if spec.save_every and state.step % spec.save_every == 0:
+                self.save("last")
+        bar.close()
+        record: dict[str, Any] = {"epoch": state.epoch + 1, "step": state.step}
+        record.update({f"train_{k}": v for k, v in _reduce_means(sums, seen, self.info).items()})
+        return record
