@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import shutil
+import importlib.util
 import subprocess
 import sys
 
@@ -12,10 +12,9 @@ from conftest import REPO
 
 
 def _ruff() -> list[str]:
-    exe = shutil.which("ruff")
-    if exe is None:
+    if importlib.util.find_spec("ruff") is None:
         pytest.skip("ruff is not installed (pip install -e '.[dev]')")
-    return [exe]
+    return [sys.executable, "-m", "ruff"]
 
 
 def test_ruff_check():

@@ -10,6 +10,7 @@ Writes ``OUT/last``, ``OUT/best`` (checkpoints) and ``OUT/log.jsonl``; ``--resum
 
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 from functools import partial
 from pathlib import Path
@@ -82,6 +83,12 @@ def _plan(
     "--metric-frames", type=int, default=64, show_default=True, help="Val frames with occupancy metrics."
 )
 @click.option("--device", default="cpu", show_default=True, help="torch device (cuda: one GPU per process).")
+@click.option(
+    "--threads",
+    type=int,
+    default=None,
+    help="torch CPU threads per process (default: cores / processes). Fixed so runs are reproducible.",
+)
 @one_line_errors
 def main(
     kind: str,
@@ -102,6 +109,7 @@ def main(
     workers: int | None,
     metric_frames: int,
     device: str,
+    threads: int | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
     _choice(kind, MODEL_KINDS, "model kind")
@@ -124,6 +132,8 @@ def main(
     teacher_model = _teacher(teacher, cfg) if teacher is not None and not resume else None
 
     info = init_distributed(torch.device(device))
+    # Float reductions depend on the thread count: set it explicitly, never inherit it.
+    torch.set_num_threads(threads or max(1, (os.cpu_count() or 1) // info.world_size))
     if device == "cuda" and info.distributed:
         device = f"cuda:{info.local_rank}"  # one GPU per process
     spec = RunSpec(
