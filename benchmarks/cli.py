@@ -5,6 +5,7 @@ from __future__ import annotations
 import click
 
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
+from msdnet.benchmarks.latency_cli import latency_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
 
 
@@ -17,3 +18,4 @@ main.add_command(voxelize_command)
 main.add_command(quality_command)
 main.add_command(odometry_command)
 main.add_command(place_command)
+main.add_command(latency_command)

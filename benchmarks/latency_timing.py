@@ -23,6 +23,7 @@ import torch
 
 from msdnet.benchmarks.numpy_reference import down_rulebook_numpy, subm_rulebook_numpy, voxelize_numpy
 from msdnet.runtime import onnx_spec
+from msdnet.runtime.decode import unpack_children
 from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.pipeline import Pipeline
 from msdnet.runtime.pointcloud import PointCloud
@@ -190,7 +191,7 @@ def plain_run(pipe: Pipeline, points: Scan, steps: int | None = None, seed: int 
         recorded.append(feed)
         (x,) = step.run(None, feed)
     occ, _ = pipe.sessions[onnx_spec.RECON_HEAD.file].run(None, {"features": x})
-    return PlainRun(occ[0, 0], recorded)
+    return PlainRun(unpack_children(occ[0], pipe.artifact.grid.shape_zyx), recorded)
 
 
 def torch_eager(

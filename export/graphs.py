@@ -7,7 +7,7 @@ order, and returns its outputs in order, so names and dynamic axes come from one
 - ``rgfd_adapter.onnx``: :class:`RgfdAdapterGraph` = noise adapter after RGFD (Eq. 12);
 - ``denoiser_step.onnx`` / ``r2ldm_step.onnx``: ``DenoiserStep`` / ``R2LDMStep`` (the DDIM update
   folded in; the runtime only feeds ``[t, abar_t, abar_prev]``);
-- ``recon_head.onnx``: the reconstruction head at full scale.
+- ``recon_head.onnx``: the reconstruction head at full scale, packed per half-scale voxel.
 """
 
 from __future__ import annotations
@@ -42,6 +42,17 @@ class RgfdAdapterGraph(nn.Module):
         return self.adapter(self.rgfd(bev_features), noise)
 
 
+class PackedHeadGraph(nn.Module):
+    """``recon_head.onnx``: the head's full scale in the packed child layout (``ReconHead.packed``)."""
+
+    def __init__(self, head: nn.Module) -> None:
+        super().__init__()
+        self.head = head
+
+    def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        return self.head.packed(features)
+
+
 def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Module]]:
     """(contract, torch module) per graph of a ``student`` or ``r2ldm`` model, pipeline order."""
     if kind == "student":
@@ -49,13 +60,13 @@ def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Modul
             (onnx_spec.ENCODER, model.encoder),
             (onnx_spec.RGFD_ADAPTER, RgfdAdapterGraph(model.rgfd, model.adapter)),
             (onnx_spec.DENOISER_STEP, model.step),
-            (onnx_spec.RECON_HEAD, model.head),
+            (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
         ]
     if kind == "r2ldm":
         return [
             (onnx_spec.ENCODER, model.encoder),
             (onnx_spec.R2LDM_STEP, model.step),
-            (onnx_spec.RECON_HEAD, model.head),
+            (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
         ]
     raise MsdnetError(None, f"cannot export a {kind!r} model (only student and r2ldm)")
 

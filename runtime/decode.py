@@ -7,6 +7,11 @@ offset are added in float64, then cast to float32. Confidence is the occupancy v
 
 One branch-free pass over the dense grid (4.1M voxels on the paper grid) collects the linear
 indices of the hits; a second pass over the hits only writes the points.
+
+``decode_packed`` reads the head's packed layout (``onnx_spec.RECON_HEAD``: axis 0 the child
+``(dz * 2 + dy) * 2 + dx`` of half-scale voxel ``[z2, y2, x2]``) and gives exactly the points of
+``decode_occupancy`` on the dense grid, in the same order; ``unpack_children`` is the plain
+numpy conversion, for comparisons outside the hot path.
 """
 
 from __future__ import annotations
@@ -70,9 +75,87 @@ def decode_occupancy(
     return _decode_kernel(occ, off, lo, size, np.float32(threshold))
 
 
+@njit(cache=True)
+def _decode_packed_kernel(
+    occupancy: np.ndarray,
+    offsets: np.ndarray,
+    shape_zyx: np.ndarray,
+    lo: np.ndarray,
+    size: np.ndarray,
+    threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """occupancy (8, D2, H2, W2), offsets (8, 3, D2, H2, W2) packed; shape_zyx (3,) int64 the
+    dense (D, H, W) -> points (M, 3) float32, confidence (M,) in dense linear-index order."""
+    d, h, w = shape_zyx[0], shape_zyx[1], shape_zyx[2]
+    hits = np.empty(d * h * w, np.int32)
+    m = 0
+    for z in range(d):
+        for y in range(h):
+            row = ((z & 1) * 2 + (y & 1)) * 2
+            for x in range(w):
+                hits[m] = (z * h + y) * w + x
+                m += occupancy[row + (x & 1), z >> 1, y >> 1, x >> 1] > threshold
+    points = np.empty((m, 3), np.float32)
+    confidence = np.empty(m, np.float32)
+    for t in range(m):
+        i = hits[t]
+        x = i % w
+        y = (i // w) % h
+        z = i // (w * h)
+        child = ((z & 1) * 2 + (y & 1)) * 2 + (x & 1)
+        z2, y2, x2 = z >> 1, y >> 1, x >> 1
+        points[t, 0] = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(offsets[child, 0, z2, y2, x2]))
+        points[t, 1] = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(offsets[child, 1, z2, y2, x2]))
+        points[t, 2] = np.float32(lo[2] + (z + 0.5) * size[2] + np.float64(offsets[child, 2, z2, y2, x2]))
+        confidence[t] = occupancy[child, z2, y2, x2]
+    return points, confidence
+
+
+def packed_shape(grid: GridConfig) -> tuple[int, int, int]:
+    """(D2, H2, W2): half-scale voxels covering the dense grid, ``ceil(n / 2)`` per axis."""
+    return tuple((n + 1) // 2 for n in grid.shape_zyx)  # type: ignore[return-value]
+
+
+def decode_packed(
+    occupancy: np.ndarray, offsets: np.ndarray, grid: GridConfig, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``decode_occupancy`` on the packed head output, without unpacking it.
+
+    occupancy: (8, D2, H2, W2) float32; offsets: (8, 3, D2, H2, W2) float32 [dx, dy, dz] metres;
+    ``(D2, H2, W2) == packed_shape(grid)``. Same points and order as ``decode_occupancy`` on
+    ``unpack_children`` of the inputs. Raises ValueError on mismatched shapes.
+    """
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    off = np.ascontiguousarray(offsets, dtype=np.float32)
+    half = packed_shape(grid)
+    if occ.shape != (8, *half):
+        raise ValueError(f"packed occupancy must be (8, *{half}), got {occ.shape}")
+    if off.shape != (8, 3, *half):
+        raise ValueError(f"packed offsets must be (8, 3, *{half}), got {off.shape}")
+    if 8 * occ[0].size >= 2**31:
+        raise ValueError(f"occupancy of {8 * occ[0].size} voxels exceeds the int32 index")
+    lo, _, size, _ = grid_arrays(grid)
+    shape = np.asarray(grid.shape_zyx, dtype=np.int64)
+    return _decode_packed_kernel(occ, off, shape, lo, size, np.float32(threshold))
+
+
+def unpack_children(packed: np.ndarray, shape_zyx: tuple[int, int, int]) -> np.ndarray:
+    """(8, ..., D2, H2, W2) packed -> (..., D, H, W) dense (numpy transpose, then crop)."""
+    lead = packed.shape[1:-3]
+    d2, h2, w2 = packed.shape[-3:]
+    x = packed.reshape(2, 2, 2, *lead, d2, h2, w2)  # (dz, dy, dx, ..., D2, H2, W2)
+    k = len(lead)
+    axes = (*range(3, 3 + k), 3 + k, 0, 4 + k, 1, 5 + k, 2)  # (..., D2, dz, H2, dy, W2, dx)
+    dense = x.transpose(axes).reshape(*lead, 2 * d2, 2 * h2, 2 * w2)
+    d, h, w = shape_zyx
+    return np.ascontiguousarray(dense[..., :d, :h, :w])
+
+
 def warmup() -> None:
     """Compile (or load from numba's cache) the decoder with a tiny input."""
     grid = GridConfig((0.0, 0.0, 0.0, 1.0, 1.0, 1.0), (0.5, 0.5, 0.5))
     occ = np.zeros(grid.shape_zyx, np.float32)
     occ[0, 1, 0] = 0.9
     decode_occupancy(occ, np.zeros((3, *grid.shape_zyx), np.float32), grid, 0.5)
+    half = packed_shape(grid)
+    decode_packed(np.zeros((8, *half), np.float32), np.zeros((8, 3, *half), np.float32), grid, 0.5)

@@ -45,9 +45,10 @@ RGFD_ADAPTER = GraphSpec(  # F_r^S, eps (1, C, H, W) -> x_m (1, C, H, W), Eq. 12
 DENOISER_STEP = GraphSpec(  # one DDIM step: x_t (1, C, H, W), t/abar_t/abar_prev (1,) -> x_prev
     "denoiser_step.onnx", ("x_t", "t", "abar_t", "abar_prev"), ("x_prev",), {}
 )
-RECON_HEAD = GraphSpec(  # F^D (1, C, H, W) -> occupancy (1, 1, D, H', W'), offsets (1, 3, D, H', W')
-    "recon_head.onnx", ("features",), ("occupancy", "offsets"), {}
-)
+# F^D (1, C, H, W) -> full-scale occupancy (1, 8, D2, H2, W2) and offsets (1, 8, 3, D2, H2, W2)
+# [dx, dy, dz], packed: axis 1 is the child (dz * 2 + dy) * 2 + dx of half-scale voxel [z2, y2, x2]
+# (full-scale voxel [2 z2 + dz, 2 y2 + dy, 2 x2 + dx]); runtime.decode.decode_packed reads it.
+RECON_HEAD = GraphSpec("recon_head.onnx", ("features",), ("occupancy", "offsets"), {})
 MSDNET_GRAPHS = (ENCODER, RGFD_ADAPTER, DENOISER_STEP, RECON_HEAD)
 
 # R2LDM baseline: same encoder and head contracts; its step takes the radar latent as condition.

@@ -11,7 +11,8 @@ Stages (``Result.timings`` keys, seconds):
    eps ~ N(0, I) comes from ``numpy.random.default_rng(seed)``, so a seed fixes the output.
 5. ``denoise``: the DDIM loop, any step count chosen per call; each step runs the step graph
    with the coefficients of ``runtime.ddim.step_coefficients`` (the update is inside the graph).
-6. ``head``: ``recon_head.onnx`` -> occupancy (1, 1, D, H', W'), offsets (1, 3, D, H', W').
+6. ``head``: ``recon_head.onnx`` -> occupancy (1, 8, D2, H2, W2), offsets (1, 8, 3, D2, H2, W2),
+   full scale packed per half-scale voxel (``onnx_spec.RECON_HEAD``).
 7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order.
 
 Buffers: F^S, the two ping-pong loop buffers and the head outputs are OrtValues allocated once
@@ -32,7 +33,7 @@ import onnxruntime as ort
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import Artifact, load_artifact
 from msdnet.runtime.ddim import step_coefficients
-from msdnet.runtime.decode import decode_occupancy
+from msdnet.runtime.decode import decode_packed, packed_shape
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
@@ -106,9 +107,9 @@ class Pipeline:
         self._noise = np.empty(self.bev_shape, np.float32)  # eps, drawn in place per call
         self._scalars = {k: np.zeros(1, np.float32) for k in ("t", "abar_t", "abar_prev")}
         self._scalar_vals = {k: buf((1,)) for k in self._scalars}  # (1,) float32 step inputs
-        d, h, w = self.artifact.grid.shape_zyx
-        self._occ = np.empty((1, 1, d, h, w), np.float32)  # head outputs, host memory
-        self._off = np.empty((1, 3, d, h, w), np.float32)
+        half = packed_shape(self.artifact.grid)  # (D2, H2, W2)
+        self._occ = np.empty((1, 8, *half), np.float32)  # head outputs (packed children), host memory
+        self._off = np.empty((1, 8, 3, *half), np.float32)
 
         # Two step bindings: even steps read x[0] and write x[1], odd steps the reverse.
         self._step_bind = []
@@ -226,7 +227,7 @@ class Pipeline:
         self._timer("denoise")
         self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
         self._timer("head")
-        out, conf = decode_occupancy(self._occ[0, 0], self._off[0], self.artifact.grid, thr)
+        out, conf = decode_packed(self._occ[0], self._off[0], self.artifact.grid, thr)
         self._timer("decode")
         self._timings["total"] = time.perf_counter() - start
         notes = () if len(out) else ("no voxel above the threshold: empty output",)

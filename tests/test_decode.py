@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msdnet.benchmarks.numpy_reference import decode_numpy
-from msdnet.runtime.decode import decode_occupancy, warmup
+from msdnet.runtime.decode import decode_occupancy, decode_packed, unpack_children, warmup
 from msdnet.runtime.grid import GRID_PRESETS, GridConfig
 
 TINY = GRID_PRESETS["tiny"]  # (D, H, W) = (10, 32, 32)
@@ -64,3 +64,36 @@ def test_shapes_are_checked() -> None:
         decode_occupancy(occ[1:], np.zeros((3, 9, 32, 32), np.float32), TINY, 0.5)
     with pytest.raises(ValueError, match="offsets must be"):
         decode_occupancy(occ, np.zeros((2, *TINY.shape_zyx), np.float32), TINY, 0.5)
+
+
+def _pack(dense: np.ndarray) -> np.ndarray:
+    """(..., D, H, W) dense -> (8, ..., D2, H2, W2) packed (zero padded to even sizes): the
+    inverse of ``unpack_children``, written with explicit strides."""
+    *lead, d, h, w = dense.shape
+    d2, h2, w2 = (d + 1) // 2, (h + 1) // 2, (w + 1) // 2
+    padded = np.zeros((*lead, 2 * d2, 2 * h2, 2 * w2), dense.dtype)
+    padded[..., :d, :h, :w] = dense
+    out = np.empty((8, *lead, d2, h2, w2), dense.dtype)
+    for dz in range(2):
+        for dy in range(2):
+            for dx in range(2):
+                out[(dz * 2 + dy) * 2 + dx] = padded[..., dz::2, dy::2, dx::2]
+    return out
+
+
+@pytest.mark.parametrize("grid", [TINY, GridConfig((0.0, 0.0, 0.0, 1.4, 1.0, 0.6), (0.2, 0.2, 0.2))])
+def test_packed_decoder_equals_dense_decoder(grid):
+    """Odd and even grids: the packed layout decodes to the same points, in the same order."""
+    rng = np.random.default_rng(3)
+    occ = rng.random(grid.shape_zyx, dtype=np.float32)
+    off = rng.uniform(-0.1, 0.1, (3, *grid.shape_zyx)).astype(np.float32)
+    p_occ, p_off = _pack(occ), _pack(off)
+    np.testing.assert_array_equal(unpack_children(p_occ, grid.shape_zyx), occ)
+    np.testing.assert_array_equal(unpack_children(p_off, grid.shape_zyx), off)
+    ref_pts, ref_conf = decode_occupancy(occ, off, grid, 0.7)
+    pts, conf = decode_packed(p_occ, p_off, grid, 0.7)
+    assert len(pts) > 0
+    np.testing.assert_array_equal(pts, ref_pts)
+    np.testing.assert_array_equal(conf, ref_conf)
+    with pytest.raises(ValueError, match="packed occupancy"):
+        decode_packed(occ, off, grid, 0.7)

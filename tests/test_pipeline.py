@@ -13,7 +13,7 @@ from export_helpers import copy_artifact, make_artifact
 
 from msdnet.runtime import MsdnetError, Pipeline, PointCloud, onnx_spec, read_cloud
 from msdnet.runtime.artifact import load_artifact
-from msdnet.runtime.decode import decode_occupancy
+from msdnet.runtime.decode import decode_packed
 
 STAGES = {"prepare", "voxelize", "encoder", "adapter", "denoise", "head", "decode", "total"}
 
@@ -75,7 +75,7 @@ def _plain_loop(pipe: Pipeline, pts: np.ndarray, steps: int, seed: int) -> np.nd
         f = {"x_t": x, "t": np.array([t]), "abar_t": np.array([a]), "abar_prev": np.array([ap])}
         (x,) = pipe.sessions["denoiser_step.onnx"].run(None, f)
     occ, off = pipe.sessions["recon_head.onnx"].run(None, {"features": x})
-    return decode_occupancy(occ[0, 0], off[0], art.grid, art.threshold)[0]
+    return decode_packed(occ[0], off[0], art.grid, art.threshold)[0]
 
 
 @pytest.mark.parametrize("steps", [1, 4, 7])
