@@ -12,7 +12,6 @@ at least 3).
 from __future__ import annotations
 
 import os
-import platform
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -20,6 +19,7 @@ from dataclasses import dataclass
 import click
 import numpy as np
 
+from msdnet.benchmarks.machine import cpu_model
 from msdnet.benchmarks.numpy_reference import (
     decode_numpy,
     down_rulebook_numpy,
@@ -80,18 +80,6 @@ def lidar_like_cloud(n: int, rng: np.random.Generator) -> np.ndarray:
     pts += rng.normal(0.0, 0.02, size=pts.shape)
     intensity = rng.uniform(0.0, 1.0, size=(n, 1))
     return np.concatenate([pts, intensity], axis=1).astype(np.float32)
-
-
-def cpu_name() -> str:
-    """The CPU model from /proc/cpuinfo where there is one, else what platform knows."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def time_pair(
@@ -228,6 +216,6 @@ def voxelize_command(repeats: int, seed: int) -> None:
         "warm-up call; cpu = thread CPU time."
     )
     click.echo(
-        f"{cpu_name()}, {os.cpu_count()} logical cores, "
+        f"{cpu_model()}, {os.cpu_count()} logical cores, "
         f"1-min load average {load:.2f} before, {os.getloadavg()[0]:.2f} after"
     )

@@ -21,19 +21,16 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import platform
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import onnx
 import onnxruntime
-import torch
 
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
 from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod
+from msdnet.training.checkpoint import versions as checkpoint_versions
 from msdnet.training.config import ModelConfig
 from msdnet.training.models import bev_shape
 
@@ -48,19 +45,8 @@ def runtime_diffusion(cfg: ModelConfig, kind: str) -> DiffusionConfig:
 
 
 def versions() -> dict[str, str]:
-    """Library versions recorded in the manifest."""
-    try:
-        msdnet_version = version("msdnet")
-    except PackageNotFoundError:
-        msdnet_version = "unknown"
-    return {
-        "msdnet": msdnet_version,
-        "torch": torch.__version__,
-        "onnx": onnx.__version__,
-        "onnxruntime": onnxruntime.__version__,
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-    }
+    """Library versions recorded in the manifest: the checkpoint's, plus onnx and onnxruntime."""
+    return {**checkpoint_versions(), "onnx": onnx.__version__, "onnxruntime": onnxruntime.__version__}
 
 
 def build_manifest(
