@@ -28,7 +28,7 @@ SPLITS = ("train", "val", "test", "all")  # "all": every frame of the folder
 PathType = click.Path(path_type=Path)
 
 
-def _int_tuple(option: str, text: str | None, minimum: int) -> tuple[int, ...] | None:
+def int_tuple(option: str, text: str | None, minimum: int) -> tuple[int, ...] | None:
     """ "0,2" -> (0, 2); MsdnetError naming ``option`` on anything else."""
     if text is None:
         return None
@@ -132,7 +132,7 @@ def _downstream(
     from msdnet.runtime.datasets import VodDataset
 
     seqs = select_sequences(
-        read_sequences(opts["data"]), _int_tuple("--sequences", opts["sequences_text"], 0), opts["max_frames"]
+        read_sequences(opts["data"]), int_tuple("--sequences", opts["sequences_text"], 0), opts["max_frames"]
     )
     methods, grid = _methods(opts)
     ds = VodDataset(opts["data"])
@@ -161,7 +161,7 @@ def odometry_command(**opts: Any) -> None:
 @one_line_errors
 def place_command(**opts: Any) -> None:
     """ScanContext Recall@K of raw radar, the models and LiDAR over simulated sequences."""
-    ks = _int_tuple("--ks", opts["ks_text"], 1)
+    ks = int_tuple("--ks", opts["ks_text"], 1)
     place = {"ks": ks, "revisit_radius": opts["revisit_radius"], "exclude_recent": opts["exclude_recent"]}
     doc = _downstream("place", opts, place)
     for name, r in doc["results"].items():

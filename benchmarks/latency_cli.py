@@ -6,21 +6,9 @@ from pathlib import Path
 
 import click
 
+from msdnet.benchmarks.eval_cli import int_tuple
 from msdnet.runtime.datasets import DATASET_NAMES
-from msdnet.runtime.errors import MsdnetError, one_line_errors
-
-
-def _int_list(option: str, text: str | None) -> tuple[int, ...] | None:
-    """ "1,3,10" -> (1, 3, 10); MsdnetError naming ``option`` on anything else."""
-    if text is None:
-        return None
-    try:
-        values = tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise MsdnetError(option, f"expected comma-separated integers, got {text!r}") from None
-    if not values or min(values) < 1:
-        raise MsdnetError(option, f"expected integers >= 1, got {text!r}")
-    return values
+from msdnet.runtime.errors import one_line_errors
 
 
 @click.command("latency", context_settings={"help_option_names": ["-h", "--help"]})
@@ -83,8 +71,8 @@ def latency_command(
         "repeats": repeats,
         "warmup": warmup,
         "r2ldm_repeats": r2ldm_repeats,
-        "steps": _int_list("--steps", steps_text),
-        "point_counts": _int_list("--points", points_text),
+        "steps": int_tuple("--steps", steps_text, 1),
+        "point_counts": int_tuple("--points", points_text, 1),
         "target_points": target_points,
         "int8": int8,
         "data": data,
