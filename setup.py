@@ -10,6 +10,7 @@ ROOTS = {
     "training": "msdnet.training",
     "export": "msdnet.export",
     "benchmarks": "msdnet.benchmarks",
+    "models": "msdnet.models",  # bundled exported models (data only)
 }
 
 packages: list[str] = []
@@ -21,4 +22,11 @@ for folder, name in ROOTS.items():
         packages.append(f"{name}.{sub}")
         package_dir[f"{name}.{sub}"] = f"{folder}/{sub.replace('.', '/')}"
 
-setup(packages=packages, package_dir=package_dir, package_data={"msdnet.runtime": ["py.typed"]})
+setup(
+    packages=packages,
+    package_dir=package_dir,
+    package_data={
+        "msdnet.runtime": ["py.typed"],
+        "msdnet.models": ["*/*.onnx", "*/*.json", "*/*.md"],
+    },
+)

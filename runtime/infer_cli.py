@@ -19,11 +19,12 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.io import READ_FORMATS, WRITE_FORMATS, read_cloud, write_cloud
 from msdnet.runtime.pointcloud import PointCloud
 
-BUNDLED_MODEL = Path(__file__).resolve().parent / "models" / "sim-lite"  # shipped default model
+BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
 OUT_COLUMNS = ("x", "y", "z", "confidence")  # columns of every written cloud
 EXIT_SOME_FAILED = 1
 
