@@ -7,6 +7,7 @@ the previous artifact or the new one. Exit 1 when verification fails, 2 on bad i
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import tempfile
@@ -145,6 +146,11 @@ def export_model(
 @click.option("--frames", type=click.IntRange(min=1), default=3, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed for --verify.")
 @click.option("--threads", type=click.IntRange(min=1), help="torch and onnxruntime threads.")
+@click.option(
+    "--threshold",
+    type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True),
+    help="Default occupancy threshold written to the manifest [the checkpoint's config].",
+)
 @one_line_errors
 def main(
     checkpoint: Path,
@@ -155,6 +161,7 @@ def main(
     frames: int,
     seed: int,
     threads: int | None,
+    threshold: float | None,
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
     import torch
@@ -167,6 +174,8 @@ def main(
         raise MsdnetError("--data", "only used with --verify")
     check_out(out)
     model, cfg, state = load_checkpoint(checkpoint)
+    if threshold is not None:
+        cfg = dataclasses.replace(cfg, threshold=threshold)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
     frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else (None, "")

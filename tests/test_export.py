@@ -128,6 +128,14 @@ def test_export_replaces_an_artifact_but_not_other_folders(student_ckpt, tmp_pat
     assert (other / "keep.txt").read_text() == "mine"
 
 
+def test_threshold_option_goes_into_the_manifest(student_ckpt, tmp_path):
+    r = _export([student_ckpt, "--out", tmp_path / "m", "--threshold", "0.3"])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert m["threshold"] == 0.3 and m["config"]["threshold"] == 0.3
+    assert _export([student_ckpt, "--out", tmp_path / "n", "--threshold", "1.5"]).exit_code == 2
+
+
 def test_export_refuses_a_teacher(tmp_path):
     ckpt = make_checkpoint(tmp_path / "teacher", "teacher")
     r = _export([ckpt, "--out", tmp_path / "m"])
