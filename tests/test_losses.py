@@ -31,6 +31,9 @@ def test_occupancy_bce_eq5():
     logits = torch.tensor([_logit(p) for p in probs]).reshape(1, 1, 2, 2)
     want = -(math.log(0.8) + math.log(0.7) + math.log(0.5) + math.log(0.1)) / 4
     assert occupancy_bce(logits, target).item() == pytest.approx(want, rel=1e-6)
+    # occupied voxels (0.8 and 0.5 here) weighted 3x
+    want_w = -(3 * math.log(0.8) + math.log(0.7) + 3 * math.log(0.5) + math.log(0.1)) / 4
+    assert occupancy_bce(logits, target, 3.0).item() == pytest.approx(want_w, rel=1e-6)
 
 
 def test_offset_l1_eq6_only_occupied_voxels():

@@ -10,6 +10,7 @@ Writes ``OUT/last``, ``OUT/best`` (checkpoints) and ``OUT/log.jsonl``; ``--resum
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import replace
 from functools import partial
@@ -89,6 +90,12 @@ def _plan(
     default=None,
     help="torch CPU threads per process (default: cores / processes). Fixed so runs are reproducible.",
 )
+@click.option(
+    "--occ-pos-weight",
+    type=float,
+    default=None,
+    help="Weight of occupied voxels in the occupancy loss (Eq. 5) [1, the paper].",
+)
 @one_line_errors
 def main(
     kind: str,
@@ -110,6 +117,7 @@ def main(
     metric_frames: int,
     device: str,
     threads: int | None,
+    occ_pos_weight: float | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
     _choice(kind, MODEL_KINDS, "model kind")
@@ -123,6 +131,10 @@ def main(
     if tcfg.batch_size < 1 or tcfg.lr <= 0 or tcfg.num_workers < 0:
         raise MsdnetError(None, "--batch-size must be >= 1, --lr > 0 and --workers >= 0")
     cfg = config_for_dataset(MODEL_PRESETS[preset], dataset)
+    if occ_pos_weight is not None:
+        if occ_pos_weight <= 0:
+            raise MsdnetError("--occ-pos-weight", f"must be > 0, got {occ_pos_weight}")
+        cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, occ_pos_weight=occ_pos_weight))
     if kind == "teacher" and teacher is not None:
         raise MsdnetError(teacher, "--teacher is for student and r2ldm runs only")
     if kind != "teacher" and teacher is None and not resume:

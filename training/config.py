@@ -21,6 +21,8 @@ class LossWeights:
     gamma: float = 20.0  # empty BEV cells, Eq. 8 and 14
     # Eq. 15 weights of: recon, reconstruction distillation, diffusion distillation, diffusion
     lambdas: tuple[float, float, float, float] = (1.0, 0.01, 5.0, 10.0)
+    # weight of occupied voxels in Eq. 5 (1 = the paper); sparse LiDAR needs more, see docs/training.md
+    occ_pos_weight: float = 1.0
 
 
 @dataclass(frozen=True)

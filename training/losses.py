@@ -18,12 +18,16 @@ from msdnet.training.config import LossWeights
 SCALE_NAMES = ("s4", "s2", "s1")  # scales 1/4, 1/2, 1 in head / target order
 
 
-def occupancy_bce(logits: Tensor, target: Tensor) -> Tensor:
-    """MSDNet Eq. 5: ``-1/N sum_i [M^_i log M_i + (1 - M^_i) log(1 - M_i)]``, M = sigmoid(logits).
+def occupancy_bce(logits: Tensor, target: Tensor, pos_weight: float = 1.0) -> Tensor:
+    """MSDNet Eq. 5: ``-1/N sum_i [w M^_i log M_i + (1 - M^_i) log(1 - M_i)]``, M = sigmoid(logits).
 
     logits: (B, D, H, W) or any shape; target: same shape, {0, 1}. Mean over all N voxels.
+    ``w = pos_weight`` weights the occupied voxels; the paper's loss is ``w = 1``.
     """
-    return F.binary_cross_entropy_with_logits(logits, target, reduction="mean")
+    if pos_weight == 1.0:
+        return F.binary_cross_entropy_with_logits(logits, target, reduction="mean")
+    w = logits.new_tensor(pos_weight)
+    return F.binary_cross_entropy_with_logits(logits, target, reduction="mean", pos_weight=w)
 
 
 def offset_l1(offsets: Tensor, target_offsets: Tensor, occupancy: Tensor) -> Tensor:
@@ -52,7 +56,7 @@ def reconstruction_loss(
     out: dict[str, Tensor] = {}
     total = preds[0][0].new_zeros(())
     for name, (logits, off), (occ_t, off_t) in zip(SCALE_NAMES, preds, targets, strict=True):
-        l_occ = occupancy_bce(logits.squeeze(1), occ_t)
+        l_occ = occupancy_bce(logits.squeeze(1), occ_t, weights.occ_pos_weight)
         l_off = offset_l1(off, off_t, occ_t)
         out[f"occ_{name}"] = l_occ
         out[f"off_{name}"] = l_off
