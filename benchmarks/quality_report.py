@@ -16,10 +16,10 @@ from typing import Any
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 
 from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.io import atomic_output
+from msdnet.runtime.viz import draw_grid
 
 # MSDNet paper, Table I (VoD) as printed: CD (unit not stated), MHD (printed x1e-2, here in m),
 # F-score (threshold not stated), JSD, MMD (printed x1e-4, here as is).
@@ -195,19 +195,11 @@ def picture_strip(
     """
     fig = Figure(figsize=(4 * len(panels), 4.4), dpi=dpi)
     FigureCanvasAgg(fig)
-    x0, y0, _, x1, y1, _ = grid.point_range
-    reach = float(np.hypot(x1, max(abs(y0), abs(y1))))
     for i, (label, pts, colour) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
         p = np.asarray(pts)
         ax.scatter(p[:, 1], p[:, 0], s=1.0 if len(p) > 2000 else 3.0, c=colour, linewidths=0)
-        ax.add_patch(Rectangle((y0, x0), y1 - y0, x1 - x0, fill=False, ec="tab:blue", lw=0.8))
-        for sign in (-1.0, 1.0):
-            a = np.radians(grid.fov_deg) * sign
-            ax.plot([0.0, reach * np.sin(a)], [0.0, reach * np.cos(a)], "--", c="tab:blue", lw=0.6)
-        my, mx = 0.03 * (y1 - y0), 0.03 * (x1 - x0)
-        ax.set_xlim(y1 + my, y0 - my)  # y left is drawn to the left
-        ax.set_ylim(x0 - mx, x1 + mx)
+        draw_grid(ax, grid, lw=0.9, margin=0.03)
         ax.set_xlabel("y (m, left)", fontsize=8)
         ax.set_aspect("equal", adjustable="box")
         ax.set_title(f"{label} ({len(p)})", fontsize=9)

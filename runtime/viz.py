@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -19,6 +20,20 @@ from msdnet.runtime.io import atomic_output
 
 # one layer: points (N, >=2) [x, y, ...] radar frame, colour, legend label, marker size (pt^2)
 Layer = tuple[np.ndarray, str, str, float]
+
+
+def draw_grid(ax: Any, grid: GridConfig, lw: float, margin: float) -> None:
+    """Outline the grid box and the radar's field of view on a BEV axis (x up, y left drawn left),
+    and frame the view on the box with ``margin`` (a share of its size) on each side."""
+    x0, y0, _, x1, y1, _ = grid.point_range
+    ax.add_patch(Rectangle((y0, x0), y1 - y0, x1 - x0, fill=False, ec="tab:blue", lw=lw))
+    reach = float(np.hypot(x1, max(abs(y0), abs(y1))))
+    for sign in (-1.0, 1.0):
+        a = np.radians(grid.fov_deg) * sign
+        ax.plot([0.0, reach * np.sin(a)], [0.0, reach * np.cos(a)], "--", c="tab:blue", lw=lw * 2 / 3)
+    mx, my = margin * (x1 - x0), margin * (y1 - y0)
+    ax.set_xlim(y1 + my, y0 - my)  # y left is drawn to the left
+    ax.set_ylim(x0 - mx, x1 + mx)
 
 
 def render_bev(
@@ -42,16 +57,7 @@ def render_bev(
             raise ValueError(f"layer {label!r}: points must be (N, >=2), got {pts.shape}")
         ax.scatter(pts[:, 1], pts[:, 0], s=size, c=colour, label=f"{label} ({len(pts)})", linewidths=0)
     if grid is not None:
-        x0, y0, _, x1, y1, _ = grid.point_range
-        box = Rectangle((y0, x0), y1 - y0, x1 - x0, fill=False, ec="tab:blue", lw=1.2)
-        ax.add_patch(box)
-        reach = float(np.hypot(x1, max(abs(y0), abs(y1))))
-        for sign in (-1.0, 1.0):
-            a = np.radians(grid.fov_deg) * sign
-            ax.plot([0.0, reach * np.sin(a)], [0.0, reach * np.cos(a)], "--", c="tab:blue", lw=0.8)
-        mx, my = 0.05 * (x1 - x0), 0.05 * (y1 - y0)
-        ax.set_xlim(y1 + my, y0 - my)  # y left is drawn to the left
-        ax.set_ylim(x0 - mx, x1 + mx)
+        draw_grid(ax, grid, lw=1.2, margin=0.05)
     else:
         ax.invert_xaxis()
     ax.set_aspect("equal", adjustable="box")
