@@ -151,6 +151,11 @@ def export_model(
     type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True),
     help="Default occupancy threshold written to the manifest [the checkpoint's config].",
 )
+@click.option(
+    "--calibrate",
+    type=click.IntRange(min=1),
+    help="Choose the threshold on N TRAINING frames of --data (lowest Chamfer distance).",
+)
 @one_line_errors
 def main(
     checkpoint: Path,
@@ -162,6 +167,7 @@ def main(
     seed: int,
     threads: int | None,
     threshold: float | None,
+    calibrate: int | None,
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
     import torch
@@ -170,14 +176,20 @@ def main(
 
     if threads is not None:
         torch.set_num_threads(threads)
-    if data is not None and not verify:
-        raise MsdnetError("--data", "only used with --verify")
+    if data is not None and not (verify or calibrate):
+        raise MsdnetError("--data", "only used with --verify or --calibrate")
+    if calibrate and threshold is not None:
+        raise MsdnetError("--calibrate", "choose either --threshold or --calibrate")
+    if calibrate and (data is None or dataset is None):
+        raise MsdnetError("--calibrate", "needs --data and --dataset (its training frames are used)")
     check_out(out)
     model, cfg, state = load_checkpoint(checkpoint)
-    if threshold is not None:
-        cfg = dataclasses.replace(cfg, threshold=threshold)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
+    if calibrate:
+        threshold = _calibrated(model, cfg, dataset, data, calibrate, seed)
+    if threshold is not None:
+        cfg = dataclasses.replace(cfg, threshold=threshold)
     frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else (None, "")
     try:
         manifest, report = export_model(
@@ -192,3 +204,16 @@ def main(
         click.echo(line)
     sizes = ", ".join(f"{g['file']} {g['bytes'] / 1e6:.2f} MB" for g in manifest["graphs"])
     click.echo(f"wrote {out}: {state.kind}, {manifest['parameters']['total']:,} parameters; {sizes}")
+
+
+def _calibrated(model, cfg, dataset: str, data: Path, frames: int, seed: int) -> float:
+    """The calibrated threshold, with its table printed."""
+    from msdnet.training.calibrate import calibrate_threshold
+
+    best, rows = calibrate_threshold(model, cfg, dataset, str(data), frames=frames, seed=seed)
+    click.echo(f"threshold calibration on {frames} training frames (mean per frame):")
+    click.echo("  threshold   CD (m)   F@0.5 m   points   empty frames")
+    for r in rows:
+        mark = "  <- chosen" if r.threshold == best else ""
+        click.echo(f"  {r.threshold:9.2f} {r.cd:8.3f} {r.fscore:9.3f} {r.points:8.0f} {r.empty:6d}{mark}")
+    return best
