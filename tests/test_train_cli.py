@@ -159,3 +159,18 @@ def test_splits_are_contiguous_cached_and_use_the_dataset_columns(astyx_root, vo
     assert (len(vtrain), len(vval)) == (2, 1) and vval.frame_ids == ["01201"]
     assert vtrain[0][0].shape[1] == len(vcfg.radar_columns) == 5
     assert vcfg.radar_feature_norm != cfg.radar_feature_norm  # re-derived for Astyx's columns
+
+
+def test_teacher_config_check_ignores_r2ldm_only_fields(tmp_path):
+    import dataclasses
+
+    from export_helpers import make_checkpoint, tiny_config
+
+    from msdnet.runtime.errors import MsdnetError
+    from msdnet.training.cli import _teacher
+
+    ckpt = make_checkpoint(tmp_path / "t", "teacher", "vod")
+    cfg = tiny_config("vod")
+    assert _teacher(ckpt, dataclasses.replace(cfg, r2ldm_channels=(8, 16), r2ldm_sample_steps=4)) is not None
+    with pytest.raises(MsdnetError, match="bev_channels"):
+        _teacher(ckpt, dataclasses.replace(cfg, bev_channels=8))

@@ -35,13 +35,17 @@ def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
     return value
 
 
+R2LDM_ONLY = ("r2ldm_channels", "r2ldm_sample_steps")  # config fields the teacher does not use
+
+
 def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     """The trained teacher from its checkpoint, after checking it fits ``cfg``."""
     folder, tcfg, tstate = read_checkpoint(path)
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
-    if tcfg != cfg:
-        fields = ", ".join(config_diff(tcfg, cfg))
+    differs = config_diff(tcfg, cfg, ignore=R2LDM_ONLY)
+    if differs:
+        fields = ", ".join(differs)
         raise MsdnetError(folder, f"teacher config differs from this run: {fields}"[:300])
     return load_checkpoint(folder)[0]
 
