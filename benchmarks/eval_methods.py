@@ -208,7 +208,26 @@ def build_methods(
     methods += [open_model(folder, settings, name) for name, folder in map(parse_ablation, ablations)]
     methods.sort(key=lambda m: (ROLES.index(m.role), m.role != "ablation" and m.backend != "onnxruntime"))
     _make_unique(methods)
+    if settings.threshold is None:
+        adopt_export_thresholds(methods)
     return methods
+
+
+def adopt_export_thresholds(methods: list[Method]) -> None:
+    """A checkpoint evaluated beside its own export decodes at the export's threshold.
+
+    ``msdnet-export --threshold/--calibrate`` records the decoding threshold in the manifest only;
+    the checkpoint still holds the training one. The export's manifest names the checkpoint it
+    came from (``source``), so torch and onnxruntime rows of the same model compare like for like.
+    """
+    exported: dict[Path, PipelineMethod] = {}
+    for m in methods:
+        if isinstance(m, PipelineMethod) and m.pipe.artifact.manifest.get("source"):
+            exported[Path(m.pipe.artifact.manifest["source"]).resolve()] = m
+    for m in methods:
+        match = exported.get(Path(m.source).resolve()) if isinstance(m, TorchMethod) else None
+        if match is not None:
+            m.threshold = match.pipe.artifact.threshold
 
 
 def _make_unique(methods: list[Method]) -> None:

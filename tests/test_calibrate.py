@@ -28,7 +28,8 @@ def test_calibration_table_and_choice(tmp_path, vod_root):
     assert all(a >= b for a, b in zip(points, points[1:], strict=False))  # higher threshold, fewer points
     assert points[0] > points[-1]
     usable = [r for r in rows if r.empty == 0]
-    assert best == min(usable, key=lambda r: r.cd).threshold
+    assert best == min(usable, key=lambda r: (r.rank, r.cd)).threshold
+    assert all(1.0 <= r.rank <= len(CANDIDATES) for r in rows)
     assert all(np.isfinite(r.cd) and r.cd > 0 for r in usable)
 
 

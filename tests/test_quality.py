@@ -218,3 +218,24 @@ def test_sequences_file_checks(tmp_path):
     assert select_sequences([seq], None, 2)[0].frame_ids == ("1", "2")
     with pytest.raises(MsdnetError, match="no sequence 1"):
         select_sequences([seq], (1,), None)
+
+
+def test_checkpoint_beside_its_export_uses_the_export_threshold(tmp_path):
+    from click.testing import CliRunner
+    from export_helpers import make_checkpoint
+
+    from msdnet.benchmarks.eval_methods import RunSettings, build_methods
+    from msdnet.export.cli import main as export_main
+
+    ckpt = make_checkpoint(tmp_path / "s", "student", "vod")
+    art = tmp_path / "m"
+    r = CliRunner().invoke(
+        export_main, [str(ckpt), "--out", str(art), "--threshold", "0.3", "--threads", "1"]
+    )
+    assert r.exit_code == 0, r.output
+    methods = build_methods([art], [ckpt], [], RunSettings(threads=1))
+    assert {m.backend: m.threshold for m in methods if m.kind == "student"}["torch"] == 0.3
+    methods = build_methods([art], [ckpt], [], RunSettings(threshold=0.4, threads=1))
+    assert {m.threshold for m in methods if m.kind == "student"} == {0.4}
+    alone = build_methods([], [ckpt], [], RunSettings(threads=1))
+    assert alone[-1].threshold == 0.5  # the checkpoint's own config
