@@ -174,3 +174,37 @@ def test_teacher_config_check_ignores_r2ldm_only_fields(tmp_path):
     assert _teacher(ckpt, dataclasses.replace(cfg, r2ldm_channels=(8, 16), r2ldm_sample_steps=4)) is not None
     with pytest.raises(MsdnetError, match="bev_channels"):
         _teacher(ckpt, dataclasses.replace(cfg, bev_channels=8))
+
+
+def test_init_starts_a_new_run_from_a_checkpoints_weights(teacher_run, astyx_root, tmp_path):
+    from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
+
+    out = tmp_path / "warm"
+    one = [*_astyx(astyx_root), "--epochs", "1"]
+    _train(["teacher", *one, "--init", str(teacher_run / "best"), "--out", str(out), "--lr", "1e-9"])
+    state = read_checkpoint(out / "last")[2]
+    assert state.init == str((teacher_run / "best").resolve()) and state.epochs == 1
+    before = load_checkpoint(teacher_run / "best")[0].state_dict()
+    after = load_checkpoint(out / "last")[0].state_dict()
+    moved = max(
+        (after[k].float() - before[k].float()).abs().max().item() for k in before if before[k].numel()
+    )
+    assert moved < 1e-3  # a near-zero learning rate keeps the initial weights: they were loaded
+    r = CliRunner().invoke(
+        main, ["student", *one, "--init", str(teacher_run / "best"), "--out", str(tmp_path / "s")]
+    )
+    assert r.exit_code == 2 and "is a teacher checkpoint, this run trains a student" in r.output
+    r = CliRunner().invoke(
+        main,
+        [
+            "teacher",
+            *_astyx(astyx_root),
+            "--preset",
+            "lite",
+            "--init",
+            str(teacher_run / "best"),
+            "--out",
+            str(tmp_path / "l"),
+        ],
+    )
+    assert r.exit_code == 2 and "--init config differs" in r.output

@@ -61,6 +61,7 @@ class CheckpointState:
     teacher: str | None = None  # teacher checkpoint the student / R2LDM was trained against
     dataset: dict[str, Any] = field(default_factory=dict)  # dataset name, root, split, frames
     world_size: int = 1  # processes that trained it (torchrun)
+    init: str | None = None  # checkpoint whose weights started the run (msdnet-train --init)
 
 
 # ---------------------------------------------------------------- config <-> JSON
@@ -244,6 +245,7 @@ def save_checkpoint(
                     "teacher",
                     "dataset",
                     "world_size",
+                    "init",
                 )
             },
             "seed": state.train.seed,

@@ -100,6 +100,12 @@ def _plan(
     default=None,
     help="Weight of occupied voxels in the occupancy loss (Eq. 5) [1, the paper].",
 )
+@click.option(
+    "--init",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="Start from this checkpoint's weights (same kind and config; fresh optimizer and schedule).",
+)
 @one_line_errors
 def main(
     kind: str,
@@ -122,6 +128,7 @@ def main(
     device: str,
     threads: int | None,
     occ_pos_weight: float | None,
+    init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
     _choice(kind, MODEL_KINDS, "model kind")
@@ -141,7 +148,9 @@ def main(
         cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, occ_pos_weight=occ_pos_weight))
     if kind == "teacher" and teacher is not None:
         raise MsdnetError(teacher, "--teacher is for student and r2ldm runs only")
-    if kind != "teacher" and teacher is None and not resume:
+    if init is not None and (resume or teacher is not None):
+        raise MsdnetError(init, "--init starts a new run from a checkpoint: not with --resume or --teacher")
+    if kind != "teacher" and teacher is None and not resume and init is None:
         raise MsdnetError(None, f"{kind} needs --teacher CKPT (a trained teacher checkpoint)")
     train_set, val_set = make_splits(dataset, data, cfg, val_fraction, max_frames, radar_frames)
     # On resume the student / R2LDM checkpoint holds its teacher: no teacher file needed.
@@ -161,6 +170,7 @@ def main(
         metric_frames=metric_frames,
         device=device,
         teacher=str(teacher.resolve()) if teacher is not None else None,
+        init=str(init.resolve()) if init is not None else None,
         dataset={
             "name": dataset,
             "root": str(Path(data).resolve()),
@@ -175,6 +185,18 @@ def main(
         shutdown_distributed()
 
 
+def _init_model(path: Path, kind: str, cfg: ModelConfig) -> torch.nn.Module:
+    """The model of checkpoint ``path`` (weights, and the teacher a student / R2LDM holds), after
+    checking it is a ``kind`` of the same config."""
+    folder, icfg, istate = read_checkpoint(path)
+    if istate.kind != kind:
+        raise MsdnetError(folder, f"--init is a {istate.kind} checkpoint, this run trains a {kind}")
+    differs = config_diff(icfg, cfg)
+    if differs:
+        raise MsdnetError(folder, f"--init config differs from this run: {', '.join(differs)}"[:300])
+    return load_checkpoint(folder)[0]
+
+
 def _run(
     spec: RunSpec,
     cfg: ModelConfig,
@@ -186,7 +208,10 @@ def _run(
 ) -> None:
     """Build the model (same seed on every rank), train it, print one summary line."""
     torch.manual_seed(tcfg.seed)
-    model = build_model(spec.kind, cfg, teacher=teacher)
+    if spec.init is not None:
+        model = _init_model(Path(spec.init), spec.kind, cfg)
+    else:
+        model = build_model(spec.kind, cfg, teacher=teacher)
     metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
     if info.is_main:

@@ -63,6 +63,7 @@ class RunSpec:
     device: str = "cpu"  # torch device of model and batches
     teacher: str | None = None  # teacher checkpoint path (student / r2ldm), recorded
     dataset: dict[str, Any] = field(default_factory=dict)  # dataset description, recorded
+    init: str | None = None  # checkpoint whose weights started the run, recorded
 
 
 # Per-batch metric counts, summed over the validation set: ``f(model, batch) -> {name: count}``.
@@ -339,7 +340,7 @@ class _Run:
         else:
             self.state = CheckpointState(kind=spec.kind, train=train_cfg, epochs=spec.epochs,
                                          teacher=spec.teacher, dataset=spec.dataset,
-                                         world_size=info.world_size)  # fmt: skip
+                                         world_size=info.world_size, init=spec.init)  # fmt: skip
         self.loader = DataLoader(
             train_set,
             batch_size=train_cfg.batch_size,
