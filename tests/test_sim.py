@@ -248,3 +248,18 @@ def test_cli_refuses_non_empty_folder_and_bad_arguments(tmp_path: Path):
     assert res.exit_code == 2 and res.output.startswith("error:")
     res = runner.invoke(simulate, ["--out", str(tmp_path / "e"), "--sequences", "200"])
     assert res.exit_code == 2 and "99999" in res.output
+
+
+def test_training_splits_follow_the_published_split_files(sim_dir: Path):
+    """Training's validation frames are exactly what ``msdnet-bench quality --split val`` scores."""
+    from msdnet.runtime.datasets import VodDataset
+    from msdnet.training.config import MODEL_PRESETS
+    from msdnet.training.data import config_for_dataset, make_splits
+
+    cfg = config_for_dataset(MODEL_PRESETS["tiny"], "sim")
+    train, val = make_splits("sim", sim_dir, cfg)
+    assert val.frame_ids == VodDataset(sim_dir, split="val").frame_ids
+    assert train.frame_ids == VodDataset(sim_dir, split="train").frame_ids
+    assert not set(train.frame_ids) & set(val.frame_ids)
+    smoke_train, smoke_val = make_splits("sim", sim_dir, cfg, max_frames=5)  # smoke: contiguous
+    assert smoke_train.frame_ids + smoke_val.frame_ids == VodDataset(sim_dir).frame_ids[:5]

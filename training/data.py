@@ -105,12 +105,26 @@ def make_splits(
     max_frames: int | None = None,
     radar_frames: int = 1,
 ) -> tuple[PairDataset, PairDataset]:
-    """(train, val) PairDatasets over the first ``max_frames`` frames (all when None)."""
-    from msdnet.runtime.datasets import open_dataset
+    """(train, val) PairDatasets over the first ``max_frames`` frames (all when None).
+
+    A VoD-layout folder with published ``ImageSets/train.txt`` and ``val.txt`` (VoD itself, and
+    what the simulator writes) is split by those files, exactly as ``msdnet-bench quality
+    --split val`` reads it, unless ``max_frames`` asks for a smoke run; anything else is split by
+    contiguous ranges (``split_indices``, ``val_fraction``).
+    """
+    from msdnet.runtime.datasets import VodDataset, open_dataset
 
     if dataset not in DATASETS:
         raise MsdnetError(None, f"unknown dataset {dataset!r} (choose from {', '.join(DATASETS)})")
     frames = open_dataset(dataset, root, radar_frames=radar_frames)
     ids = list(frames.frame_ids) if max_frames is None else list(frames.frame_ids[:max_frames])
-    train_idx, val_idx = split_indices(ids, val_fraction)
+    published = isinstance(frames, VodDataset) and all(frames.split_file(n) for n in ("train", "val"))
+    if published and max_frames is None:
+        pos = {fid: i for i, fid in enumerate(ids)}
+        parts = [VodDataset(root, split=n, radar_frames=radar_frames).frame_ids for n in ("train", "val")]
+        train_idx, val_idx = ([pos[f] for f in part if f in pos] for part in parts)
+        if not train_idx or not val_idx:
+            raise MsdnetError(root, "ImageSets/train.txt or val.txt names none of the frames found")
+    else:
+        train_idx, val_idx = split_indices(ids, val_fraction)
     return PairDataset(frames, train_idx, cfg), PairDataset(frames, val_idx, cfg)

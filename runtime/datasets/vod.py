@@ -104,17 +104,24 @@ class VodDataset(FrameDataset):
         poses = [d / "pose" for d in (self.lidar_dir, self.radar_dir)]
         self.pose_dir: Path | None = next((d for d in poses if d.is_dir()), None)
 
+    def split_file(self, name: str) -> Path | None:
+        """The published ``ImageSets/<name>.txt`` (under lidar/, radar/ or the root), if any."""
+        for folder in ("lidar", "radar", "."):
+            path = self.root / folder / "ImageSets" / f"{name}.txt"
+            if path.is_file():
+                return path
+        return None
+
     def _split_ids(self, all_ids: list[str]) -> list[str]:
         if self.split is None:
             return all_ids
-        for folder in ("lidar", "radar", "."):
-            split_file = self.root / folder / "ImageSets" / f"{self.split}.txt"
-            if split_file.is_file():
-                try:
-                    text = split_file.read_text(encoding="utf-8")
-                except (OSError, UnicodeDecodeError) as err:
-                    raise MsdnetError(split_file, f"cannot read split file ({err})") from None
-                return [tok for tok in text.split() if tok]
+        split_file = self.split_file(self.split)
+        if split_file is not None:
+            try:
+                text = split_file.read_text(encoding="utf-8")
+            except (OSError, UnicodeDecodeError) as err:
+                raise MsdnetError(split_file, f"cannot read split file ({err})") from None
+            return [tok for tok in text.split() if tok]
         if self.split in ("train", "val"):
             train, val = split_contiguous(all_ids)
             return train if self.split == "train" else val
