@@ -88,7 +88,8 @@ def summary_lines(rows: list[FrameComparison], model_name: str) -> list[str]:
     else:
         closer = "no output points (try a lower --threshold)"
     return [
-        f"{len(rows)} frames, {m['seconds']:.3f} s/frame; per frame inside the grid and field of view:",
+        f"{len(rows)} frames, median {np.median([r.seconds for r in rows]):.3f} s/frame; "
+        "per frame inside the grid and field of view:",
         f"  denser:  radar {m['radar_points']:.0f} points -> {model_name} {m['dense_points']:.0f} "
         f"({dens:.1f}x; LiDAR {m['lidar_points']:.0f})",
         f"  closer:  Chamfer distance to LiDAR {m['radar_cd']:.3f} m -> {closer}; "
