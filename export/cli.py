@@ -206,7 +206,7 @@ def main(
     click.echo(f"wrote {out}: {state.kind}, {manifest['parameters']['total']:,} parameters; {sizes}")
 
 
-def _calibrated(model, cfg, dataset: str, data: Path, frames: int, seed: int) -> float:
+def _calibrated(model: Any, cfg: Any, dataset: str, data: Path, frames: int, seed: int) -> float:
     """The calibrated threshold, with its table printed."""
     from msdnet.training.calibrate import calibrate_threshold
 

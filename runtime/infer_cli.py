@@ -25,11 +25,11 @@ from tqdm import tqdm
 
 import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.io import READ_FORMATS, WRITE_FORMATS, read_cloud, write_cloud
+from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_cloud
 from msdnet.runtime.pointcloud import PointCloud
 
 BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
-OUT_COLUMNS = ("x", "y", "z", "confidence")  # columns of every written cloud
+OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 EXIT_SOME_FAILED = 1
 
 _WORKER: dict[str, Any] = {}  # per-process pipeline and settings (worker processes)

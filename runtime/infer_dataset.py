@@ -23,12 +23,12 @@ from tqdm import tqdm
 from msdnet.runtime.datasets import open_dataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.io import atomic_output, write_cloud
+from msdnet.runtime.io import DENSE_COLUMNS, atomic_output, write_cloud
 from msdnet.runtime.pipeline import Pipeline
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.preprocess import preprocess_frame
 
-OUT_COLUMNS = ("x", "y", "z", "confidence")  # columns of every written cloud
+OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 FSCORE_AT = 0.5  # metres: the F-score threshold quoted in the summary
 COMPARISON_FILE = "comparison.json"
 

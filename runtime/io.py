@@ -39,6 +39,7 @@ LIDAR_COLUMNS = ("x", "y", "z", "intensity")
 BIN_KINDS: dict[str, tuple[str, ...]] = {"vod_radar": VOD_RADAR_COLUMNS, "lidar": LIDAR_COLUMNS}
 READ_FORMATS = (".bin", ".txt", ".npy", ".pcd", ".ply")
 WRITE_FORMATS = ("bin", "npy", "pcd", "ply")
+DENSE_COLUMNS = ("x", "y", "z", "confidence")  # columns of every cloud msdnet-infer writes
 
 
 def read_cloud(
