@@ -69,6 +69,24 @@ def make_artifact(root: Path, kind: str, dataset: str = "vod") -> Path:
     return _CACHE[key]
 
 
+def make_exported_checkpoint(
+    root: Path, dataset: str = "vod", threshold: float | None = None
+) -> tuple[Path, Path]:
+    """(checkpoint, artifact exported from it): a tiny random student; ``threshold`` (when given)
+    goes into the manifest only, as ``msdnet-export --threshold`` does. The manifest's source names
+    the checkpoint."""
+    from msdnet.export.cli import export_model
+    from msdnet.training.checkpoint import load_checkpoint
+
+    ckpt = make_checkpoint(root / "ckpt", "student", dataset)
+    model, cfg, _ = load_checkpoint(ckpt)
+    if threshold is not None:
+        cfg = dataclasses.replace(cfg, threshold=threshold)
+    with one_torch_thread():
+        export_model(model, "student", cfg, root / "onnx", str(ckpt))
+    return ckpt, root / "onnx"
+
+
 def copy_artifact(src: Path, dst: Path) -> Path:
     """A private copy of an artifact folder, to tamper with."""
     shutil.copytree(src, dst)

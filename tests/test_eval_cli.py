@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from export_helpers import make_artifact, make_checkpoint, one_torch_thread
+from export_helpers import make_artifact, make_exported_checkpoint, one_torch_thread
 
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.metrics import score_frame
@@ -27,15 +27,9 @@ def _invoke(command, args: list[str]):
 @pytest.fixture(scope="module")
 def astyx_models(tmp_path_factory) -> dict[str, Path]:
     """Tiny Astyx models: a student checkpoint and its export, an R2LDM export."""
-    from msdnet.export.cli import export_model
-    from msdnet.training.checkpoint import load_checkpoint
-
     root = tmp_path_factory.mktemp("astyx-models")
-    ckpt = make_checkpoint(root / "ckpt", "student", "astyx")
-    model, cfg, _ = load_checkpoint(ckpt)
-    with one_torch_thread():
-        export_model(model, "student", cfg, root / "msdnet", "test")
-    return {"ckpt": ckpt, "msdnet": root / "msdnet", "r2ldm": make_artifact(root, "r2ldm", "astyx")}
+    ckpt, msdnet = make_exported_checkpoint(root, "astyx")
+    return {"ckpt": ckpt, "msdnet": msdnet, "r2ldm": make_artifact(root, "r2ldm", "astyx")}
 
 
 @pytest.fixture(scope="module")

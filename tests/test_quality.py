@@ -8,7 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from export_helpers import copy_artifact, make_artifact, make_checkpoint, one_torch_thread
+from export_helpers import (
+    copy_artifact,
+    make_artifact,
+    make_exported_checkpoint,
+    one_torch_thread,
+)
 
 from msdnet.benchmarks.downstream import read_sequences, select_sequences
 from msdnet.benchmarks.eval_methods import (
@@ -44,15 +49,7 @@ SETTINGS = RunSettings(threads=1)
 @pytest.fixture(scope="module")
 def astyx_pair(tmp_path_factory) -> tuple[Path, Path]:
     """(checkpoint, artifact exported from that checkpoint): a tiny random student, Astyx columns."""
-    from msdnet.export.cli import export_model
-    from msdnet.training.checkpoint import load_checkpoint
-
-    root = tmp_path_factory.mktemp("pair")
-    ckpt = make_checkpoint(root / "ckpt", "student", "astyx")
-    model, cfg, _ = load_checkpoint(ckpt)
-    with one_torch_thread():
-        export_model(model, "student", cfg, root / "onnx", "test")
-    return ckpt, root / "onnx"
+    return make_exported_checkpoint(tmp_path_factory.mktemp("pair"), "astyx")
 
 
 class _Fake(Method):
@@ -221,18 +218,9 @@ def test_sequences_file_checks(tmp_path):
 
 
 def test_checkpoint_beside_its_export_uses_the_export_threshold(tmp_path):
-    from click.testing import CliRunner
-    from export_helpers import make_checkpoint
-
     from msdnet.benchmarks.eval_methods import RunSettings, build_methods
-    from msdnet.export.cli import main as export_main
 
-    ckpt = make_checkpoint(tmp_path / "s", "student", "vod")
-    art = tmp_path / "m"
-    r = CliRunner().invoke(
-        export_main, [str(ckpt), "--out", str(art), "--threshold", "0.3", "--threads", "1"]
-    )
-    assert r.exit_code == 0, r.output
+    ckpt, art = make_exported_checkpoint(tmp_path, "vod", threshold=0.3)
     methods = build_methods([art], [ckpt], [], RunSettings(threads=1))
     assert {m.backend: m.threshold for m in methods if m.kind == "student"}["torch"] == 0.3
     methods = build_methods([art], [ckpt], [], RunSettings(threshold=0.4, threads=1))
