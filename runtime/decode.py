@@ -23,6 +23,16 @@ from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.voxelize import grid_arrays
 
 
+@njit(cache=True, inline="always")
+def _put_point(points: np.ndarray, t: int, lo: np.ndarray, size: np.ndarray, x: int, y: int, z: int,
+               dx: np.float32, dy: np.float32, dz: np.float32) -> None:  # fmt: skip
+    """points[t] = centre of voxel [z, y, x] plus the offset [dx, dy, dz]: the sum in float64, the
+    store in float32 (the rule both decoders share)."""
+    points[t, 0] = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(dx))
+    points[t, 1] = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(dy))
+    points[t, 2] = np.float32(lo[2] + (z + 0.5) * size[2] + np.float64(dz))
+
+
 @njit(cache=True)
 def _decode_kernel(
     occupancy: np.ndarray, offsets: np.ndarray, lo: np.ndarray, size: np.ndarray, threshold: float
@@ -47,9 +57,7 @@ def _decode_kernel(
         x = i % w
         y = (i // w) % h
         z = i // (w * h)
-        points[t, 0] = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(off[0, i]))
-        points[t, 1] = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(off[1, i]))
-        points[t, 2] = np.float32(lo[2] + (z + 0.5) * size[2] + np.float64(off[2, i]))
+        _put_point(points, t, lo, size, x, y, z, off[0, i], off[1, i], off[2, i])
         confidence[t] = occ[i]
     return points, confidence
 
@@ -104,9 +112,8 @@ def _decode_packed_kernel(
         z = i // (w * h)
         child = ((z & 1) * 2 + (y & 1)) * 2 + (x & 1)
         z2, y2, x2 = z >> 1, y >> 1, x >> 1
-        points[t, 0] = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(offsets[child, 0, z2, y2, x2]))
-        points[t, 1] = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(offsets[child, 1, z2, y2, x2]))
-        points[t, 2] = np.float32(lo[2] + (z + 0.5) * size[2] + np.float64(offsets[child, 2, z2, y2, x2]))
+        cell = offsets[child, :, z2, y2, x2]  # (3,) [dx, dy, dz]
+        _put_point(points, t, lo, size, x, y, z, cell[0], cell[1], cell[2])
         confidence[t] = occupancy[child, z2, y2, x2]
     return points, confidence
 
