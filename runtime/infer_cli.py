@@ -20,13 +20,11 @@ from pathlib import Path
 from typing import Any
 
 import click
-import numpy as np
 from tqdm import tqdm
 
 import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_cloud
-from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_dense
 
 BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
@@ -94,8 +92,7 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
         cloud = read_cloud(src)
         row["points_in"] = len(cloud)
         res = pipe(cloud, steps=opts["steps"], threshold=opts["threshold"], seed=opts["seed"])
-        dense = np.concatenate([res.points, res.confidence[:, None]], axis=1)  # (M, 4)
-        write_cloud(dst, PointCloud(dense, OUT_COLUMNS, source=dst), opts["fmt"])
+        write_dense(dst, res.points, res.confidence, opts["fmt"])
         if opts["png"]:
             from msdnet.runtime.viz import render_bev
 

@@ -23,9 +23,8 @@ from tqdm import tqdm
 from msdnet.runtime.datasets import open_dataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.io import DENSE_COLUMNS, atomic_output, write_cloud
+from msdnet.runtime.io import DENSE_COLUMNS, atomic_output, write_dense
 from msdnet.runtime.pipeline import Pipeline
-from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.preprocess import preprocess_frame
 
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
@@ -119,8 +118,7 @@ def run_dataset(
         res = pipe(frame.radar, steps=opts["steps"], threshold=opts["threshold"], seed=opts["seed"])
         seconds = time.perf_counter() - start
         dst = out / f"{fid}.{opts['fmt']}"
-        dense = np.concatenate([res.points, res.confidence[:, None]], axis=1)  # (M, 4)
-        write_cloud(dst, PointCloud(dense, OUT_COLUMNS, source=dst), opts["fmt"])
+        write_dense(dst, res.points, res.confidence, opts["fmt"])
         if opts["png"]:
             from msdnet.runtime.viz import render_bev
 

@@ -299,3 +299,10 @@ def write_cloud(path: str | Path, cloud: PointCloud, fmt: str | None = None) -> 
                 rows[c] = pts[:, i]
             plyfile.PlyData([plyfile.PlyElement.describe(rows, "vertex")], text=False).write(f)
     return target
+
+
+def write_dense(path: str | Path, points: np.ndarray, confidence: np.ndarray, fmt: str | None = None) -> Path:
+    """Write a dense output atomically: points (M, 3) float32 [x, y, z] and confidence (M,) as
+    columns ``DENSE_COLUMNS``; returns the path."""
+    dense = np.concatenate([points, confidence[:, None]], axis=1)  # (M, 4)
+    return write_cloud(path, PointCloud(dense, DENSE_COLUMNS, source=str(path)), fmt)
