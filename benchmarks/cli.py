@@ -1,4 +1,4 @@
-"""``msdnet-bench``: the benchmark commands: voxelize, quality, odometry, place, latency."""
+"""``msdnet-bench``: the benchmark commands: voxelize, quality, odometry, place, latency, stages."""
 
 from __future__ import annotations
 
@@ -6,6 +6,7 @@ import click
 
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.latency_cli import latency_command
+from msdnet.benchmarks.stages import stages_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
 
 
@@ -19,3 +20,4 @@ main.add_command(quality_command)
 main.add_command(odometry_command)
 main.add_command(place_command)
 main.add_command(latency_command)
+main.add_command(stages_command)

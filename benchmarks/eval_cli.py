@@ -66,14 +66,18 @@ def model_options(func: Callable[..., Any]) -> Callable[..., Any]:
     return func
 
 
-def _methods(opts: dict[str, Any], ablations: tuple[str, ...] = ()) -> tuple[list[Method], GridConfig]:
+def _methods(
+    opts: dict[str, Any], ablations: tuple[str, ...] = (), keep_radar: bool = False
+) -> tuple[list[Method], GridConfig]:
     """(methods, grid) from the shared options."""
     from msdnet.benchmarks.eval_methods import RunSettings, build_methods, common_grid
 
     settings = RunSettings(
         opts["steps"], opts["r2ldm_steps"], opts["threshold"], opts["threads"], opts["provider"]
     )
-    methods = build_methods(list(opts["models"]), list(opts["checkpoints"]), list(ablations), settings)
+    methods = build_methods(
+        list(opts["models"]), list(opts["checkpoints"]), list(ablations), settings, keep_radar
+    )
     return methods, common_grid(methods, opts["grid"])
 
 
@@ -82,6 +86,9 @@ def _methods(opts: dict[str, Any], ablations: tuple[str, ...] = ()) -> tuple[lis
 @click.option("--data", required=True, type=PathType, help="Dataset root.")
 @click.option("--split", type=click.Choice(SPLITS), default="val", show_default=True, help="Frames scored.")
 @click.option("--ablation", "ablations", multiple=True, help="NAME=DIR: ablation model (repeat).")
+@click.option(
+    "--keep-radar", is_flag=True, help="Also score each MSDNet model's output joined with the input radar."
+)
 @click.option("--max-frames", type=click.IntRange(min=1), help="Score this many frames, spread evenly.")
 @click.option("--pictures", type=click.IntRange(min=0), default=3, show_default=True, help="BEV strips.")
 @click.option("--save", type=PathType, help="Also write every cloud: DIR/<method>/<frame>.npy.")
@@ -92,7 +99,7 @@ def quality_command(**opts: Any) -> None:
     from msdnet.benchmarks.quality import run_quality
     from msdnet.runtime.datasets import open_dataset
 
-    methods, grid = _methods(opts, opts["ablations"])
+    methods, grid = _methods(opts, opts["ablations"], opts["keep_radar"])
     split = None if opts["split"] == "all" else opts["split"]
     ds = open_dataset(opts["dataset"], opts["data"], split)
     evaluation = {"dataset": opts["dataset"], "data": str(opts["data"]), "split": opts["split"]}

@@ -30,8 +30,11 @@ from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.pointcloud import PointCloud
 
-KIND_LABELS = {"student": "MSDNet", "r2ldm": "R2LDM"}  # model kind -> name in the tables
-ROLES = ("radar", "r2ldm", "msdnet", "ablation", "lidar")  # what a row stands for, in table order
+# model kind -> name in the tables, and the role of its row
+KIND_LABELS = {"student": "MSDNet", "r2ldm": "R2LDM", "teacher": "Teacher (LiDAR in)"}
+ROLE_OF_KIND = {"student": "msdnet", "r2ldm": "r2ldm", "teacher": "teacher"}
+# what a row stands for, in table order ("teacher": LiDAR -> teacher -> points, the student's ceiling)
+ROLES = ("radar", "r2ldm", "msdnet", "ablation", "teacher", "lidar")
 
 
 @dataclass(frozen=True)
@@ -59,9 +62,11 @@ class Method:
     backend: str  # "input", "onnxruntime" or "torch"
     source: str  # where it came from (folder or "input")
     grid: GridConfig | None  # the model's voxel grid (None for raw radar)
+    input: str = "radar"  # which preprocessed cloud of the frame ``run`` takes: "radar" or "lidar"
 
     def run(self, radar: PointCloud, seed: int) -> np.ndarray:
-        """radar: preprocessed scan -> (M, 3) float32 [x, y, z] radar frame, metres."""
+        """radar: preprocessed scan (the LiDAR for ``input == "lidar"``) -> (M, 3) float32
+        [x, y, z] radar frame, metres."""
         raise NotImplementedError
 
     def describe(self) -> dict[str, Any]:
@@ -90,7 +95,9 @@ class RawRadar(Method):
 class PipelineMethod(Method):
     """An exported artifact folder run by the onnxruntime :class:`Pipeline`."""
 
-    def __init__(self, folder: Path, settings: RunSettings, name: str | None = None) -> None:
+    def __init__(
+        self, folder: Path, settings: RunSettings, name: str | None = None, keep_radar: bool = False
+    ) -> None:
         from msdnet.runtime.pipeline import Pipeline
 
         self.pipe = Pipeline.from_dir(folder, provider=settings.provider, threads=settings.threads)
@@ -102,9 +109,11 @@ class PipelineMethod(Method):
         self.key = slug(self.name)
         self.steps = settings.steps_for(self.kind)
         self.threshold = settings.threshold
+        self.keep_radar = keep_radar  # output = model points + the input radar points
 
     def run(self, radar: PointCloud, seed: int) -> np.ndarray:
-        return self.pipe(radar, steps=self.steps, threshold=self.threshold, seed=seed).points
+        kw = {"steps": self.steps, "threshold": self.threshold, "seed": seed, "keep_radar": self.keep_radar}
+        return self.pipe(radar, **kw).points
 
     def describe(self) -> dict[str, Any]:
         a = self.pipe.artifact
@@ -114,7 +123,9 @@ class PipelineMethod(Method):
 
 
 class TorchMethod(Method):
-    """A student or R2LDM training checkpoint run in torch eager, decoded like the pipeline."""
+    """A student or R2LDM training checkpoint run in torch eager, decoded like the pipeline; or a
+    teacher checkpoint, which takes the frame's preprocessed LiDAR (the row "Teacher (LiDAR in)":
+    the ceiling the student chases)."""
 
     def __init__(self, checkpoint: Path, settings: RunSettings, name: str | None = None) -> None:
         import torch
@@ -125,12 +136,13 @@ class TorchMethod(Method):
         if settings.threads is not None:
             torch.set_num_threads(settings.threads)
         model, cfg, state = load_checkpoint(checkpoint)
-        if state.kind not in KIND_LABELS:
-            raise MsdnetError(checkpoint, f"a {state.kind} checkpoint needs LiDAR input (student or r2ldm)")
         self.model, self.cfg, self.kind = model, cfg, state.kind
         self.backend, self.source, self.grid = "torch", str(checkpoint), cfg.grid
-        self.role = "ablation" if name else ("msdnet" if self.kind == "student" else "r2ldm")
+        self.role = "ablation" if name else ROLE_OF_KIND[self.kind]
         self.name = name or f"{KIND_LABELS[self.kind]} (torch)"
+        self.input = "lidar" if self.kind == "teacher" else "radar"
+        self.columns = cfg.lidar_columns if self.kind == "teacher" else cfg.radar_columns
+        self.max_voxels = cfg.max_voxels_lidar if self.kind == "teacher" else cfg.max_voxels_radar
         self.key = slug(self.name)
         default = cfg.diffusion.sample_steps if self.kind == "student" else cfg.r2ldm_sample_steps
         self.steps = settings.steps_for(self.kind) or default
@@ -142,13 +154,16 @@ class TorchMethod(Method):
 
         from msdnet.training.batch import make_encoder_input
 
-        pts = np.ascontiguousarray(radar.select(self.cfg.radar_columns).points, dtype=np.float32)
-        enc = make_encoder_input([pts], self.cfg.grid, self.cfg.max_voxels_radar)
+        pts = np.ascontiguousarray(radar.select(self.columns).points, dtype=np.float32)
+        enc = make_encoder_input([pts], self.cfg.grid, self.max_voxels)
         if enc.features.shape[0] == 0:  # no voxel in the grid: the pipeline returns nothing too
             return np.empty((0, 3), np.float32)
         noise = np.random.default_rng(seed).standard_normal(self.noise_shape, dtype=np.float32)
         with torch.no_grad():
-            occ, off = self.model.predict(enc, noise=torch.from_numpy(noise), sample_steps=self.steps)
+            if self.kind == "teacher":
+                occ, off = self.model.predict(enc)
+            else:
+                occ, off = self.model.predict(enc, noise=torch.from_numpy(noise), sample_steps=self.steps)
         points, _ = decode_occupancy(occ[0].numpy(), off[0].numpy(), self.cfg.grid, self.threshold)
         return points
 
@@ -157,7 +172,7 @@ class TorchMethod(Method):
             **super().describe(),
             "steps": self.steps,
             "threshold": self.threshold,
-            "columns": list(self.cfg.radar_columns),
+            "columns": list(self.columns),
         }
 
 
@@ -195,15 +210,20 @@ def build_methods(
     checkpoints: list[Path],
     ablations: list[str],
     settings: RunSettings,
+    keep_radar: bool = False,
 ) -> list[Method]:
-    """Raw radar, ``models`` (artifact folders, onnxruntime), ``checkpoints`` (torch) and
-    ``ablations`` (NAME=DIR, artifact or checkpoint), ordered by role (radar, R2LDM, MSDNet,
-    ablations; onnxruntime before torch within a role). Repeated names get the folder name."""
+    """Raw radar, ``models`` (artifact folders, onnxruntime), ``checkpoints`` (torch; a teacher
+    checkpoint gives the LiDAR-in teacher row) and ``ablations`` (NAME=DIR, artifact or
+    checkpoint), ordered by role (radar, R2LDM, MSDNet, ablations, teacher; onnxruntime before
+    torch within a role). ``keep_radar`` adds a row "MSDNet + radar points" per MSDNet artifact.
+    Repeated names get the folder name."""
     methods: list[Method] = [RawRadar()]
     for folder in models:
         if not is_artifact(folder):
             raise MsdnetError(folder, f"not an exported model folder (no {MANIFEST}); use --checkpoint")
         methods.append(PipelineMethod(folder, settings))
+        if keep_radar and methods[-1].kind == "student":
+            methods.append(PipelineMethod(folder, settings, "MSDNet + radar points (onnxruntime)", True))
     methods += [TorchMethod(path, settings) for path in checkpoints]
     methods += [open_model(folder, settings, name) for name, folder in map(parse_ablation, ablations)]
     methods.sort(key=lambda m: (ROLES.index(m.role), m.role != "ablation" and m.backend != "onnxruntime"))
@@ -228,6 +248,11 @@ def adopt_export_thresholds(methods: list[Method]) -> None:
         match = exported.get(Path(m.source).resolve()) if isinstance(m, TorchMethod) else None
         if match is not None:
             m.threshold = match.pipe.artifact.threshold
+    # The teacher shares its head with the student: decode it at the MSDNet export's threshold.
+    student = primary([m for m in methods if isinstance(m, PipelineMethod)], "msdnet")
+    for m in methods:
+        if isinstance(m, TorchMethod) and m.kind == "teacher" and student is not None:
+            m.threshold = student.pipe.artifact.threshold
 
 
 def _make_unique(methods: list[Method]) -> None:

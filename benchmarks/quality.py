@@ -111,7 +111,7 @@ def evaluate_quality(
             _save_cloud(save / LIDAR_KEY, fid, ref)
         kept: dict[str, np.ndarray] = {}
         for m in methods:
-            pred = crop_to_grid(m.run(frame.radar, seed), grid)
+            pred = crop_to_grid(m.run(frame.lidar if m.input == "lidar" else frame.radar, seed), grid)
             run.scores[m.name].append(score_frame(pred, ref, area))
             if save is not None:
                 _save_cloud(save / m.key, fid, pred)

@@ -154,7 +154,8 @@ def export_model(
 @click.option(
     "--calibrate",
     type=click.IntRange(min=1),
-    help="Choose the threshold on N TRAINING frames of --data (best mean rank of 5 metrics).",
+    help="Choose the threshold on N frames of --data held out of the training range by the run "
+    "(its --holdout slice; never validation), by the best mean rank of 5 metrics.",
 )
 @one_line_errors
 def main(
@@ -186,8 +187,12 @@ def main(
     model, cfg, state = load_checkpoint(checkpoint)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
+    if not cfg.use_dgfd:
+        msg = "an ablation without DGFD runs in torch only (msdnet-bench quality --ablation)"
+        raise MsdnetError(checkpoint, msg)
     if calibrate:
-        threshold = _calibrated(model, cfg, dataset, data, calibrate, seed)
+        holdout = float(state.dataset.get("holdout", 0.0))
+        threshold = _calibrated(model, cfg, dataset, data, calibrate, seed, holdout)
     if threshold is not None:
         cfg = dataclasses.replace(cfg, threshold=threshold)
     frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else (None, "")
@@ -206,12 +211,15 @@ def main(
     click.echo(f"wrote {out}: {state.kind}, {manifest['parameters']['total']:,} parameters; {sizes}")
 
 
-def _calibrated(model: Any, cfg: Any, dataset: str, data: Path, frames: int, seed: int) -> float:
+def _calibrated(
+    model: Any, cfg: Any, dataset: str, data: Path, frames: int, seed: int, holdout: float
+) -> float:
     """The calibrated threshold, with its table printed."""
     from msdnet.training.calibrate import calibrate_threshold
 
-    best, rows = calibrate_threshold(model, cfg, dataset, str(data), frames=frames, seed=seed)
-    click.echo(f"threshold calibration on {frames} training frames (mean per frame):")
+    best, rows = calibrate_threshold(model, cfg, dataset, str(data), frames, seed=seed, holdout=holdout)
+    where = f"held-out training-range frames (holdout {holdout:g})" if holdout > 0 else "training frames"
+    click.echo(f"threshold calibration on {frames} {where} (mean per frame):")
     click.echo("  threshold   CD (m)  MHD (m)  F@0.5 m    JSD  MMD x1e4   points  empty  mean rank")
     for r in rows:
         mark = "  <- chosen" if r.threshold == best else ""

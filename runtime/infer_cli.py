@@ -4,6 +4,8 @@ Inputs are files or folders (the point-cloud files directly inside a folder, sor
 format ``runtime/io`` reads. Each output is ``OUT/<input stem>.<format>`` with columns
 ``x y z confidence`` (radar frame, metres; confidence = occupancy). One bad file does not stop
 the others: the summary names it and the exit code is 1. Bad arguments exit 2 with one line.
+``--keep-radar`` (off by default) appends the input radar points inside the grid box to every
+output, confidence 1 (``Pipeline.__call__(keep_radar=True)``); by default the output is the model's.
 
 ``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/infer_dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
@@ -91,7 +93,13 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
         start = time.perf_counter()
         cloud = read_cloud(src)
         row["points_in"] = len(cloud)
-        res = pipe(cloud, steps=opts["steps"], threshold=opts["threshold"], seed=opts["seed"])
+        res = pipe(
+            cloud,
+            steps=opts["steps"],
+            threshold=opts["threshold"],
+            seed=opts["seed"],
+            keep_radar=opts["keep_radar"],
+        )
         write_dense(dst, res.points, res.confidence, opts["fmt"])
         if opts["png"]:
             from msdnet.runtime.viz import render_bev
@@ -114,7 +122,11 @@ def _summary(rows: list[dict[str, Any]], wall: float) -> tuple[str, int]:
     p_out = sum(r["points_out"] for r in rows if "error" not in r)
     per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
     lines = [f"files: {ok} ok, {len(failed)} failed; points in {p_in}, out {p_out}; time {wall:.2f} s{per}"]
-    lines += [f"  empty: {r['file']}: {'; '.join(r['notes'])}" for r in rows if r.get("notes")]
+    lines += [
+        f"  {'note' if r['points_out'] else 'empty'}: {r['file']}: {'; '.join(r['notes'])}"
+        for r in rows
+        if r.get("notes")
+    ]
     lines += [f"  FAILED {r['error']}" for r in failed]
     return "\n".join(lines), (EXIT_SOME_FAILED if failed else 0)
 
@@ -128,6 +140,11 @@ def _summary(rows: list[dict[str, Any]], wall: float) -> tuple[str, int]:
 @click.option("--threshold", type=float, help="Occupancy threshold [manifest].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed.")
 @click.option("--png", is_flag=True, help="Also write a BEV picture per file.")
+@click.option(
+    "--keep-radar",
+    is_flag=True,
+    help="Output = model points + the input radar points in the grid (confidence 1). Off: model only.",
+)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True)
 @click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
@@ -148,6 +165,7 @@ def main(
     threshold: float | None,
     seed: int,
     png: bool,
+    keep_radar: bool,
     workers: int,
     provider: str,
     threads: int | None,
@@ -170,6 +188,7 @@ def main(
     except ValueError as err:
         raise MsdnetError("--steps", str(err)) from None
     opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
+    opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
     if dataset is not None:
         _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, opts)
         return
@@ -229,5 +248,7 @@ def _dataset_mode(
     pipe = Pipeline(artifact, provider=provider, threads=threads)
     rows = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, opts)
     name = "R2LDM" if artifact.kind == "r2ldm" else "MSDNet"
+    if opts["keep_radar"]:
+        name += "+radar"  # the scored output is the union (--keep-radar), not the model alone
     click.echo("\n".join(summary_lines(rows, name)))
     click.echo(f"wrote {len(rows)} clouds{' and pictures' if opts['png'] else ''} to {out}")

@@ -6,7 +6,9 @@ frame is scored against its LiDAR sweep the way ``msdnet-bench quality`` scores 
 cropped to the grid box and the radar's field of view with its ground removed, the radar and the
 dense cloud cropped the same way (``benchmarks.quality.crop_to_grid``). The summary says how much
 denser and how much closer to the LiDAR the output is than the radar, and
-``OUT/comparison.json`` keeps every frame's figures.
+``OUT/comparison.json`` keeps every frame's figures. With ``opts["keep_radar"]`` (``--keep-radar``)
+the output, and so every "dense" figure, is the model's points plus the radar points in the grid;
+``comparison.json`` then says ``"keep_radar": true``.
 """
 
 from __future__ import annotations
@@ -115,7 +117,13 @@ def run_dataset(
     for fid in tqdm(ids, unit="frame", desc="msdnet-infer", disable=None):
         frame = preprocess_frame(ds.load(fid), grid)
         start = time.perf_counter()
-        res = pipe(frame.radar, steps=opts["steps"], threshold=opts["threshold"], seed=opts["seed"])
+        res = pipe(
+            frame.radar,
+            steps=opts["steps"],
+            threshold=opts["threshold"],
+            seed=opts["seed"],
+            keep_radar=opts.get("keep_radar", False),
+        )
         seconds = time.perf_counter() - start
         dst = out / f"{fid}.{opts['fmt']}"
         write_dense(dst, res.points, res.confidence, opts["fmt"])
@@ -130,6 +138,8 @@ def run_dataset(
             render_bev(dst.with_suffix(".png"), layers, grid, f"{dataset} {fid}")
         rows.append(compare_frame(fid, frame.radar.xyz, res.points, frame.lidar.xyz, grid, seconds))
     with atomic_output(out / COMPARISON_FILE) as tmp:
-        body = {"summary": summarize(rows), "frames": [asdict(r) for r in rows]}
+        body: dict[str, Any] = {"summary": summarize(rows), "frames": [asdict(r) for r in rows]}
+        if opts.get("keep_radar"):
+            body["keep_radar"] = True  # dense_* figures score model points + radar points
         Path(tmp).write_text(json.dumps(body, indent=1, allow_nan=True) + "\n")
     return rows

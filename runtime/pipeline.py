@@ -13,7 +13,8 @@ Stages (``Result.timings`` keys, seconds):
    with the coefficients of ``runtime.ddim.step_coefficients`` (the update is inside the graph).
 6. ``head``: ``recon_head.onnx`` -> occupancy (1, 8, D2, H2, W2), offsets (1, 8, 3, D2, H2, W2),
    full scale packed per half-scale voxel (``onnx_spec.RECON_HEAD``).
-7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order.
+7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with
+   ``keep_radar`` the input radar points inside the grid box are appended (confidence 1).
 
 Buffers: F^S, the two ping-pong loop buffers and the head outputs are OrtValues allocated once
 and bound once (IOBinding): the loop only writes the three step scalars and swaps bindings, no
@@ -38,7 +39,7 @@ from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.session import create_session, device_of
-from msdnet.runtime.voxelize import voxelize
+from msdnet.runtime.voxelize import in_range_mask, voxelize
 from msdnet.runtime.voxelize import warmup as numba_warmup
 
 
@@ -47,9 +48,10 @@ class Result:
     """Output of one :class:`Pipeline` call."""
 
     points: np.ndarray  # (M, 3) float32 [x, y, z], radar frame, metres
-    confidence: np.ndarray  # (M,) float32 occupancy of each point's voxel, > threshold
+    confidence: np.ndarray  # (M,) float32 occupancy of each point's voxel, > threshold; 1.0 keep_radar rows
     timings: dict[str, float]  # seconds per stage (module docstring) and "total"
-    stats: dict[str, int] = field(default_factory=dict)  # points_in, points_in_grid, voxels, steps
+    # points_in, points_in_grid, voxels, steps; with keep_radar also radar_kept (the last rows)
+    stats: dict[str, int] = field(default_factory=dict)
     notes: tuple[str, ...] = ()  # human-readable remarks, e.g. why the output is empty
 
 
@@ -196,9 +198,20 @@ class Pipeline:
         steps: int | None = None,
         threshold: float | None = None,
         seed: int = 0,
+        *,
+        keep_radar: bool = False,
     ) -> Result:
         """Run one scan: points (N, C) float32 (manifest columns) or a PointCloud ->
-        :class:`Result` with points (M, 3) [x, y, z] and confidence (M,). Same seed, same bytes."""
+        :class:`Result` with points (M, 3) float32 [x, y, z] and confidence (M,) float32.
+        Same seed, same bytes.
+
+        keep_radar: False (default): the model's decoded points only (M = M_model), confidence =
+        occupancy. True: the model's points followed by the input radar points the model saw, i.e.
+        the rows inside the grid box (``lo <= p < hi``, every column finite; the voxelizer's crop,
+        count ``stats["points_in_grid"]``, before the max_voxels cap), in input order, x y z only,
+        confidence 1.0: points (M_model + K, 3), confidence (M_model + K,), and the first M_model
+        rows are exactly the output without the flag (same seed). ``stats["radar_kept"]`` = K.
+        """
         thr = self.artifact.threshold if threshold is None else float(threshold)
         if not 0.0 < thr < 1.0:
             raise MsdnetError("threshold", f"must be in (0, 1), got {thr}")
@@ -210,7 +223,9 @@ class Pipeline:
         in_grid, n_vox = self._encode(pts)
         stats = {"points_in": int(pts.shape[0]), "points_in_grid": in_grid, "voxels": n_vox}
         stats["steps"] = int(coeffs.shape[0])
-        if n_vox == 0:
+        if keep_radar:
+            stats["radar_kept"] = 0
+        if n_vox == 0:  # no row inside the grid box, so no radar point to keep either
             self._timer("voxelize")
             self._timings["total"] = time.perf_counter() - start
             why = "empty scan" if pts.shape[0] == 0 else "no point inside the grid"
@@ -228,9 +243,18 @@ class Pipeline:
         self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
         self._timer("head")
         out, conf = decode_packed(self._occ[0], self._off[0], self.artifact.grid, thr)
+        n_model = len(out)
+        if keep_radar:
+            radar = pts[in_range_mask(pts, self.artifact.grid), :3]
+            stats["radar_kept"] = int(radar.shape[0])
+            out = np.ascontiguousarray(np.concatenate([out, radar]), dtype=np.float32)
+            conf = np.concatenate([conf, np.ones(radar.shape[0], np.float32)])
         self._timer("decode")
         self._timings["total"] = time.perf_counter() - start
-        notes = () if len(out) else ("no voxel above the threshold: empty output",)
+        notes: tuple[str, ...] = ()
+        if n_model == 0:
+            tail = "empty output" if len(out) == 0 else f"output is the {len(out)} radar points only"
+            notes = (f"no voxel above the threshold: {tail}",)
         return Result(out, conf, self._timings, stats, notes)
 
     def _loop(self, coeffs: np.ndarray) -> int:

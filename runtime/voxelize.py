@@ -267,6 +267,18 @@ def voxelize(points: np.ndarray, grid: GridConfig, max_voxels: int) -> Voxels:
     return Voxels(coords, counts, feats, int(d_range), int(d_cap))
 
 
+def in_range_mask(points: np.ndarray, grid: GridConfig) -> np.ndarray:
+    """points: (N, C) float32, C >= 3, [x, y, z, ...] -> (N,) bool: the rows :func:`voxelize` keeps
+    (rule 1: every column finite and ``lo <= p < hi`` on x, y, z, compared in float64), so
+    ``mask.sum() == N - Voxels.dropped_out_of_range``. The max_voxels cap is not applied."""
+    pts = np.asarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise ValueError(f"points must be (N, C>=3) [x, y, z, ...], got shape {pts.shape}")
+    lo, hi, _, _ = grid_arrays(grid)
+    xyz = pts[:, :3].astype(np.float64)
+    return np.isfinite(pts).all(axis=1) & ((xyz >= lo) & (xyz < hi)).all(axis=1)
+
+
 def warmup() -> None:
     """Compile (or load from numba's cache) the voxelizer, rulebook builder and decoder."""
     from msdnet.runtime.decode import warmup as warm_decode

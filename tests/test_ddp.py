@@ -22,8 +22,8 @@ def test_torchrun_two_processes_train_and_write_one_checkpoint(tmp_path, astyx_r
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert sorted(p.name for p in out.iterdir()) == ["best", "last", "log.jsonl"]
     _, cfg, state = read_checkpoint(out / "last")
-    # 5 train frames over 2 ranks -> 3 per rank (DistributedSampler pads) -> 2 steps of 2.
-    assert (state.world_size, state.epoch, state.step) == (2, 1, 2)
+    # 5 train frames, 1 held out -> 4 fitted over 2 ranks -> 2 per rank -> 1 step of 2.
+    assert (state.world_size, state.epoch, state.step) == (2, 1, 1)
     assert cfg.radar_columns == ("x", "y", "z", "v_r", "mag")
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [e["event"] for e in log] == ["start", "epoch", "stop"]  # rank 0 alone writes

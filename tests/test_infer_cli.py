@@ -97,6 +97,28 @@ def test_same_seed_bit_identical_files_and_workers(vod_model, vod_scans, tmp_pat
         assert (a / f"{scan.stem}.npy").read_bytes() == (b / f"{scan.stem}.npy").read_bytes()
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_keep_radar_flag_appends_radar_rows(vod_model, vod_scans, tmp_path, workers):
+    """--keep-radar (also through --workers processes): each file is the default output followed
+    by the scan's radar points inside the grid box, confidence 1."""
+    scans = vod_scans[:2]
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert _infer([*scans, "--model", vod_model, "--out", a, *STEPS]).exit_code == 0
+    r = _infer([*scans, "--model", vod_model, "--out", b, "--keep-radar", "--workers", workers, *STEPS])
+    assert r.exit_code == 0, r.output
+    pipe = Pipeline.from_dir(vod_model, threads=1)
+    lo, hi = np.array(pipe.artifact.grid.point_range[:3]), np.array(pipe.artifact.grid.point_range[3:])
+    for scan in scans:
+        plain = read_cloud(a / f"{scan.stem}.npy", columns=OUT_COLUMNS).points
+        kept = read_cloud(b / f"{scan.stem}.npy", columns=OUT_COLUMNS).points
+        xyz = read_cloud(scan).xyz
+        radar = xyz[np.all((xyz >= lo) & (xyz < hi), axis=1)]
+        assert len(radar) > 0 and kept.shape == (len(plain) + len(radar), 4)
+        np.testing.assert_array_equal(kept[: len(plain)], plain)
+        np.testing.assert_array_equal(kept[len(plain) :, :3], radar)
+        assert np.all(kept[len(plain) :, 3] == 1.0)
+
+
 @pytest.mark.parametrize("graph", [s.file for s in onnx_spec.MSDNET_GRAPHS])
 def test_tampered_graph_refused_by_name(vod_model, vod_scans, tmp_path, graph):
     model = copy_artifact(vod_model, tmp_path / "model")

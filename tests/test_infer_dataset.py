@@ -62,6 +62,30 @@ def test_dataset_mode_writes_clouds_and_compares(vod_model, vod_root, tmp_path):
     assert f"radar {radar_mean:.0f} points" in r.output
 
 
+def test_dataset_mode_keep_radar_scores_the_union(vod_model, vod_root, tmp_path):
+    """--keep-radar in --dataset mode: the written cloud and the comparison are model + radar."""
+    args = [vod_root, "--dataset", "vod", "--model", vod_model, "--frames", "1", "--steps", "3"]
+    r = _infer([*args, "--out", tmp_path, "--threads", "1", "--keep-radar"])
+    assert r.exit_code == 0, r.output
+    assert "-> MSDNet+radar " in r.output
+    body = json.loads((tmp_path / COMPARISON_FILE).read_text())
+    assert body["keep_radar"] is True
+    (row,) = body["frames"]
+    ds = open_dataset("vod", vod_root)
+    pipe = Pipeline.from_dir(vod_model, threads=1)
+    frame = preprocess_frame(ds.load(row["frame"]), pipe.artifact.grid)
+    model_only = pipe(frame.radar, steps=3)
+    back = read_cloud(tmp_path / f"{row['frame']}.npy", columns=OUT_COLUMNS).points
+    m, k = len(model_only.points), len(frame.radar)  # the radar is already cropped to the grid box
+    assert k > 0 and back.shape == (m + k, 4)
+    np.testing.assert_array_equal(back[:m, :3], model_only.points)
+    np.testing.assert_array_equal(back[m:, :3], frame.radar.xyz)
+    assert np.all(back[m:, 3] == 1.0)
+    dense = crop_to_grid(back[:, :3], pipe.artifact.grid)
+    assert row["dense_points"] == len(dense) > len(crop_to_grid(model_only.points, pipe.artifact.grid))
+    assert abs(row["dense_cd"] - chamfer_distance(dense, frame.lidar.xyz)) < CD_TOL
+
+
 def test_dataset_mode_refusals(vod_model, vod_root, tmp_path):
     r = _infer([vod_root, "--split", "val", "--model", vod_model, "--out", tmp_path])
     assert r.exit_code == 2 and "only apply with --dataset" in r.output

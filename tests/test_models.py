@@ -77,7 +77,7 @@ def test_tiny_full_forward_every_kind():
     scale_terms = {f"{t}_{s}" for t in ("occ", "off") for s in ("s4", "s2", "s1")}
     want = {
         "teacher": {"loss", "recon"} | scale_terms,
-        "student": {"loss", "recon", "distill_rec", "distill_diff", "diff"} | scale_terms,
+        "student": {"loss", "recon", "distill_rec", "distill_diff", "diff", "gate"} | scale_terms,
         "r2ldm": {"loss", "diff"},
     }
     for kind in ("teacher", "student", "r2ldm"):
@@ -140,7 +140,7 @@ def test_teacher_frozen_head_shared_and_gradients_reach_rgfd_through_ddim_loop()
     torch.manual_seed(0)
     batch = _synthetic_batch(cfg, seed=3)
     student = build_model("student", cfg, TeacherModel(cfg))
-    assert student.head is student.teacher.head
+    assert student.head._head is student.teacher.head  # the head on de-normalised latents
     student.train()
     assert not student.teacher.training and student.rgfd.training
     trainable = {id(p) for p in student.parameters() if p.requires_grad}
@@ -151,8 +151,13 @@ def test_teacher_frozen_head_shared_and_gradients_reach_rgfd_through_ddim_loop()
     for name, p in student.rgfd.named_parameters():
         assert p.grad is not None, name
     assert sum(float(p.grad.abs().sum()) for p in student.rgfd.parameters()) > 0
-    assert all(float(p.grad.abs().sum()) > 0 for p in student.denoiser.parameters())
+    assert all(p.grad is None for p in student.denoiser.parameters())  # it learns Eq. 10 only
     assert all(p.grad is None for p in student.teacher.parameters())
+    losses = dataclasses.replace(cfg.losses, denoiser_distill_grad=True)  # the old recipe
+    student = build_model("student", dataclasses.replace(cfg, losses=losses), TeacherModel(cfg)).train()
+    terms = student.losses(batch)
+    (terms["recon"] + terms["distill_diff"]).backward()
+    assert all(float(p.grad.abs().sum()) > 0 for p in student.denoiser.parameters())
 
 
 @pytest.fixture(scope="module")

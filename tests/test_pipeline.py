@@ -106,6 +106,57 @@ def test_empty_scans(pipe):
     assert len(res.points) == 0 and "no point inside the grid" in res.notes[0]
 
 
+def _radar_in_grid(pipe: Pipeline, arr: np.ndarray) -> np.ndarray:
+    """(K, 3) float32 xyz of the rows the voxelizer keeps: finite, lo <= p < hi in float64."""
+    lo = np.asarray(pipe.artifact.grid.point_range[:3], np.float64)
+    hi = np.asarray(pipe.artifact.grid.point_range[3:], np.float64)
+    xyz = arr[:, :3].astype(np.float64)
+    keep = np.isfinite(arr).all(axis=1) & (xyz >= lo).all(axis=1) & (xyz < hi).all(axis=1)
+    return arr[keep, :3]
+
+
+def test_keep_radar_appends_the_radar_in_the_grid(pipe, scan):
+    """keep_radar: model points first (exactly the output without it), then the radar rows inside
+    the grid box in input order, confidence 1; rows outside the box or non-finite are left out."""
+    arr = scan.select(pipe.columns).points
+    extra = np.zeros((3, arr.shape[1]), np.float32)
+    extra[0, :3] = 1000.0  # far outside the grid
+    extra[1, :3] = arr[0, :3]
+    extra[1, 3] = np.nan  # inside the box but non-finite: the voxelizer drops it
+    extra[2, :3] = pipe.artifact.grid.point_range[3:]  # on the upper faces: half-open box, out
+    arr = np.concatenate([arr[:100], extra, arr[100:]])
+    base = pipe(arr, steps=3, seed=5)
+    res = pipe(arr, steps=3, seed=5, keep_radar=True)
+    radar = _radar_in_grid(pipe, arr)
+    m, k = len(base.points), len(radar)
+    assert m > 1000 and 0 < k == res.stats["points_in_grid"] == res.stats["radar_kept"] < len(arr) - 3
+    assert res.points.shape == (m + k, 3) and res.confidence.shape == (m + k,)
+    assert res.points.dtype == np.float32 and res.confidence.dtype == np.float32
+    assert res.points.flags.c_contiguous
+    np.testing.assert_array_equal(res.points[:m], base.points)
+    np.testing.assert_array_equal(res.confidence[:m], base.confidence)
+    np.testing.assert_array_equal(res.points[m:], radar)
+    assert np.all(res.confidence[m:] == 1.0)
+    assert "radar_kept" not in base.stats
+    # a PointCloud gives the same as the array in manifest column order
+    again = pipe(scan, steps=3, seed=5, keep_radar=True)
+    plain = pipe(scan, steps=3, seed=5)
+    np.testing.assert_array_equal(
+        again.points[len(plain.points) :], _radar_in_grid(pipe, scan.select(pipe.columns).points)
+    )
+
+
+def test_keep_radar_edge_cases(pipe, scan):
+    c = len(pipe.columns)
+    outside = pipe(np.full((5, c), 100.0, np.float32), keep_radar=True)
+    assert outside.points.shape == (0, 3) and outside.confidence.shape == (0,)
+    # no voxel above the threshold: the output is the radar points alone, and the note says so
+    res = pipe(scan, steps=1, threshold=0.999999, keep_radar=True)
+    radar = _radar_in_grid(pipe, scan.select(pipe.columns).points)
+    np.testing.assert_array_equal(res.points, radar)
+    assert "radar points only" in res.notes[0]
+
+
 def test_columns(pipe, scan):
     assert pipe.columns == ("x", "y", "z", "rcs", "v_r_compensated")
     with pytest.raises(MsdnetError, match=r"must be \(N, 5\)"):

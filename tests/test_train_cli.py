@@ -20,7 +20,8 @@ from msdnet.training.cli import main
 from msdnet.training.config import MODEL_PRESETS
 from msdnet.training.data import config_for_dataset, make_splits
 
-TINY = ["--preset", "tiny", "--frames", "4"]
+# 6 frames: validation split frame 5 (never read), fitted 0-3, held-out selection slice frame 4
+TINY = ["--preset", "tiny", "--frames", "6"]
 
 
 def _astyx(root: Path) -> list[str]:
@@ -38,7 +39,7 @@ def _log(out: Path) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def teacher_run(tmp_path_factory, astyx_root) -> Path:
-    """A tiny teacher trained for the preset's 2 epochs on Astyx frames 0-2 (val: frame 3)."""
+    """A tiny teacher trained for the preset's 2 epochs on Astyx frames 0-3 (selection: frame 4)."""
     out = tmp_path_factory.mktemp("teacher") / "run"
     _train(["teacher", *_astyx(astyx_root), "--out", str(out)])
     return out
@@ -50,7 +51,8 @@ def test_teacher_run_writes_checkpoints_log_and_metrics(teacher_run):
     assert cfg == config_for_dataset(MODEL_PRESETS["tiny"], "astyx")
     assert cfg.radar_columns == ("x", "y", "z", "v_r", "mag")
     assert (state.kind, state.epoch, state.step, state.epochs) == ("teacher", 2, 4, 2)
-    assert state.dataset["train_frames"] == ["000000", "000002", 3]
+    assert state.dataset["train_frames"] == ["000000", "000003", 4]
+    assert state.dataset["val_frames"] == ["000004", "000004", 1] and state.dataset["holdout"] == 0.15
     epochs = [e for e in _log(teacher_run) if e["event"] == "epoch"]
     assert [e["epoch"] for e in epochs] == [1, 2]
     for e in epochs:

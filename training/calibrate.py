@@ -1,4 +1,8 @@
-"""Occupancy threshold chosen on TRAINING frames (never validation): ``msdnet-export --calibrate``.
+"""Occupancy threshold chosen on held-out TRAINING-range frames: ``msdnet-export --calibrate``.
+
+The frames are the checkpoint's selection slice (``msdnet-train --holdout``: the last frames of
+the training range, which the weights were not fitted on and which are not the validation split);
+a run without a holdout calibrates on its training frames (over-fitted ones: avoid).
 
 A model trained with a weighted occupancy loss (``--occ-pos-weight w``) over-states every
 probability (odds times ``w``), so its right decoding threshold is not 0.5. For each candidate
@@ -61,13 +65,16 @@ def calibrate_threshold(
     frames: int = 24,
     val_fraction: float = 0.2,
     seed: int = 0,
+    holdout: float = 0.0,
 ) -> tuple[float, list[ThresholdRow]]:
-    """(best threshold, table) on ``frames`` training frames of ``root``; the model is a student
-    or R2LDM whose ``predict(radar)`` gives full-scale (occ (B, D, H, W), off (B, 3, D, H, W))."""
+    """(best threshold, table) on ``frames`` frames of ``root``: of the selection slice ``holdout``
+    of the training range when > 0 (``make_splits``), else of the training range. The model is a
+    student or R2LDM whose ``predict(radar)`` gives full-scale (occ (B, D, H, W), off (B, 3, D, H, W))."""
     from msdnet.benchmarks.metrics import score_frame
     from msdnet.benchmarks.quality import crop_to_grid, xy_range
 
-    train, _ = make_splits(dataset, root, cfg, val_fraction=val_fraction)
+    fit, select = make_splits(dataset, root, cfg, val_fraction=val_fraction, holdout=holdout)
+    train = select if holdout > 0 else fit
     picks = pick_frames(len(train), frames)
     torch.manual_seed(seed)
     per: dict[float, list[dict[str, float]]] = {t: [] for t in CANDIDATES}

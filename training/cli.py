@@ -22,7 +22,7 @@ import torch
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import collate
 from msdnet.training.checkpoint import config_diff, load_checkpoint, read_checkpoint
-from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, ModelConfig, TrainConfig
+from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, AugmentConfig, ModelConfig, TrainConfig
 from msdnet.training.data import DATASETS, PairDataset, config_for_dataset, make_splits
 from msdnet.training.distributed import DistInfo, init_distributed, shutdown_distributed
 from msdnet.training.loop import RunSpec, occupancy_counts, train
@@ -35,7 +35,11 @@ def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
     return value
 
 
-R2LDM_ONLY = ("r2ldm_channels", "r2ldm_sample_steps")  # config fields the teacher does not use
+# config fields the teacher does not use: R2LDM's, the student's, and the latent normalisation
+# that is measured on the teacher when a student / R2LDM run starts
+R2LDM_ONLY = ("r2ldm_channels", "r2ldm_sample_steps")
+NOT_TEACHER = (*R2LDM_ONLY, "train_sample_steps", "latent_norm", "use_rgfd", "use_dgfd", "use_adapter")
+ABLATIONS = {"rgfd": "use_rgfd", "dgfd": "use_dgfd", "adapter": "use_adapter"}  # --ablate NAME -> field
 
 
 def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
@@ -43,7 +47,7 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     folder, tcfg, tstate = read_checkpoint(path)
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
-    differs = config_diff(tcfg, cfg, ignore=R2LDM_ONLY)
+    differs = config_diff(tcfg, cfg, ignore=NOT_TEACHER)
     if differs:
         fields = ", ".join(differs)
         raise MsdnetError(folder, f"teacher config differs from this run: {fields}"[:300])
@@ -100,6 +104,33 @@ def _plan(
     default=None,
     help="Weight of occupied voxels in the occupancy loss (Eq. 5) [1, the paper].",
 )
+@click.option("--zeta", type=float, default=None, help="Offset weight of Eq. 7 [10, the paper].")
+@click.option(
+    "--holdout",
+    type=float,
+    default=0.15,
+    show_default=True,
+    help="Share of the training range (its last frames) held out to pick the best checkpoint; "
+    "the validation split is never read (0: select on the validation split, as before 2026-12).",
+)
+@click.option(
+    "--augment/--no-augment",
+    default=True,
+    show_default=True,
+    help="Seeded mirror / yaw / scale / radar dropout of the training frames.",
+)
+@click.option(
+    "--ablate",
+    multiple=True,
+    help="Student ablation (repeatable): rgfd (no RGFD), dgfd (no adapter and loop), adapter (Eq. 9 at m).",
+)
+@click.option(
+    "--latent-frames",
+    type=int,
+    default=64,
+    show_default=True,
+    help="Training frames on which a student / R2LDM run measures the teacher's latent shift and scale.",
+)
 @click.option(
     "--init",
     type=click.Path(path_type=Path),
@@ -128,6 +159,11 @@ def main(
     device: str,
     threads: int | None,
     occ_pos_weight: float | None,
+    zeta: float | None,
+    holdout: float,
+    augment: bool,
+    ablate: tuple[str, ...],
+    latent_frames: int,
     init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -137,6 +173,8 @@ def main(
     if epochs is not None and epochs < 1:
         raise MsdnetError(None, f"--epochs must be >= 1, got {epochs}")
     options = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers}
+    if not augment:
+        options["augment"] = AugmentConfig.off()
     overrides = {k: v for k, v in options.items() if v is not None}
     n_epochs, tcfg = _plan(kind, out, resume, epochs, TRAIN_PRESETS[preset], overrides)
     if tcfg.batch_size < 1 or tcfg.lr <= 0 or tcfg.num_workers < 0:
@@ -146,15 +184,27 @@ def main(
         if occ_pos_weight <= 0:
             raise MsdnetError("--occ-pos-weight", f"must be > 0, got {occ_pos_weight}")
         cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, occ_pos_weight=occ_pos_weight))
+    if zeta is not None:
+        if zeta < 0:
+            raise MsdnetError("--zeta", f"must be >= 0, got {zeta}")
+        cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, zeta=zeta))
+    for name in ablate:
+        if kind != "student":
+            raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")
+        cfg = dataclasses.replace(cfg, **{ABLATIONS[_choice(name, tuple(ABLATIONS), "ablation")]: False})
     if kind == "teacher" and teacher is not None:
         raise MsdnetError(teacher, "--teacher is for student and r2ldm runs only")
     if init is not None and (resume or teacher is not None):
         raise MsdnetError(init, "--init starts a new run from a checkpoint: not with --resume or --teacher")
     if kind != "teacher" and teacher is None and not resume and init is None:
         raise MsdnetError(None, f"{kind} needs --teacher CKPT (a trained teacher checkpoint)")
-    train_set, val_set = make_splits(dataset, data, cfg, val_fraction, max_frames, radar_frames)
+    train_set, val_set = make_splits(
+        dataset, data, cfg, val_fraction, max_frames, radar_frames, holdout, tcfg.augment, tcfg.seed
+    )
     # On resume the student / R2LDM checkpoint holds its teacher: no teacher file needed.
     teacher_model = _teacher(teacher, cfg) if teacher is not None and not resume else None
+    if kind != "teacher":
+        cfg = _with_latent_norm(cfg, out, resume, init, teacher_model, train_set, latent_frames)
 
     info = init_distributed(torch.device(device))
     # Float reductions depend on the thread count: set it explicitly, never inherit it.
@@ -177,12 +227,42 @@ def main(
             "radar_frames": radar_frames,
             "train_frames": [train_set.frame_ids[0], train_set.frame_ids[-1], len(train_set)],
             "val_frames": [val_set.frame_ids[0], val_set.frame_ids[-1], len(val_set)],
+            # val_frames is the selection slice of the training range when holdout > 0
+            "holdout": holdout,
+            "val_fraction": val_fraction,
         },
     )
     try:
         _run(spec, cfg, tcfg, train_set, val_set, teacher_model, info)
     finally:
         shutdown_distributed()
+
+
+def _with_latent_norm(
+    cfg: ModelConfig,
+    out: Path,
+    resume: bool,
+    init: Path | None,
+    teacher: torch.nn.Module | None,
+    train_set: PairDataset,
+    frames: int,
+) -> ModelConfig:
+    """``cfg`` with ``latent_norm``: measured on ``frames`` training frames with a fresh teacher,
+    or what the checkpoint being resumed / started from recorded (training/latent.py)."""
+    if teacher is None:
+        path = out / "last" if resume else init
+        return replace(cfg, latent_norm=read_checkpoint(path)[1].latent_norm) if path else cfg
+    from msdnet.training.latent import measure_latent_norm
+
+    if frames < 1:
+        raise MsdnetError("--latent-frames", f"must be >= 1, got {frames}")
+    norm = measure_latent_norm(teacher, train_set, cfg, frames)
+    scales = [s for _, s in norm]
+    click.echo(
+        f"latent norm on {min(frames, len(train_set))} training frames: shift mean "
+        f"{sum(m for m, _ in norm) / len(norm):.3f}, scale {min(scales):.3f}-{max(scales):.3f}"
+    )
+    return replace(cfg, latent_norm=norm)
 
 
 def _init_model(path: Path, kind: str, cfg: ModelConfig) -> torch.nn.Module:

@@ -23,6 +23,11 @@ class LossWeights:
     lambdas: tuple[float, float, float, float] = (1.0, 0.01, 5.0, 10.0)
     # weight of occupied voxels in Eq. 5 (1 = the paper); sparse LiDAR needs more, see docs/training.md
     occ_pos_weight: float = 1.0
+    # let Eq. 14 and the reconstruction loss reach the denoiser's weights through the DDIM loop
+    # (False: the denoiser learns Eq. 10 only; the loop's gradients still reach RGFD and the
+    # adapter). Measured: with it on, Eq. 14 is 120-640x Eq. 10 on the denoiser and the
+    # denoiser stops predicting noise (docs/training.md).
+    denoiser_distill_grad: bool = False
 
 
 @dataclass(frozen=True)
@@ -55,6 +60,14 @@ class ModelConfig:
     # per-voxel column means, so the runtime feeds raw means; () -> defaults by column name
     radar_feature_norm: tuple[tuple[float, float], ...] = ()
     lidar_feature_norm: tuple[tuple[float, float], ...] = ()  # the same for the LiDAR columns
+    # (shift, scale) per BEV channel of the teacher's F_l^D, measured on training frames when the
+    # student / R2LDM run starts (training/latent.py); diffusion works on (F - shift) / scale and
+    # the exported head de-normalises. () = identity (models trained before 2026-12)
+    latent_norm: tuple[tuple[float, float], ...] = ()
+    use_rgfd: bool = True  # ablation switch: False = F_r^R is the encoder's F_r^S (no RGFD)
+    use_dgfd: bool = True  # ablation switch: False = no adapter, no loop: F_r^D = F_r^R (torch only)
+    # ablation switch: False = no noise adapter, x_m is Eq. 9 at m: sqrt(abar_m) F + sqrt(1 - abar_m) eps
+    use_adapter: bool = True
     s2d_blocks: int = 2  # residual blocks per resolution in the teacher's S2D enhancement
     occupancy_prior: float = 0.02  # initial occupancy probability of the head (its bias init)
 
@@ -69,6 +82,11 @@ class ModelConfig:
             if len(norm) != len(cols) or any(b <= 0 for _, b in norm):
                 raise ValueError(f"{attr} needs one (shift, scale > 0) per column of {cols}")
             object.__setattr__(self, attr, norm)
+        latent = tuple((float(a), float(b)) for a, b in self.latent_norm)
+        if latent and (len(latent) != self.bev_channels or any(b <= 0 for _, b in latent)):
+            need = f"() or one (shift, scale > 0) per BEV channel ({self.bev_channels})"
+            raise ValueError(f"latent_norm needs {need}")
+        object.__setattr__(self, "latent_norm", latent)
 
 
 # Typical spread of the non-geometric point columns: (shift, scale) so that most values land
@@ -93,6 +111,27 @@ def default_feature_norm(columns: tuple[str, ...], grid: GridConfig) -> tuple[tu
 
 
 @dataclass(frozen=True)
+class AugmentConfig:
+    """Ranges of the random transforms (all off: ``AugmentConfig.off()``)."""
+
+    mirror_p: float = 0.5  # probability of mirroring y
+    yaw_deg: float = 10.0  # largest yaw, degrees (either way)
+    scale: float = 0.05  # largest relative scale change of x, y, z
+    dropout_p: float = 0.5  # probability that a frame's radar points are thinned
+    keep_min: float = 0.4  # lowest share of radar points kept by a thinned frame
+
+    @staticmethod
+    def off() -> AugmentConfig:
+        """No augmentation (the identity)."""
+        return AugmentConfig(mirror_p=0.0, yaw_deg=0.0, scale=0.0, dropout_p=0.0, keep_min=1.0)
+
+    @property
+    def enabled(self) -> bool:
+        """True when any transform can change a frame."""
+        return self != AugmentConfig.off()
+
+
+@dataclass(frozen=True)
 class TrainConfig:
     """Optimisation settings (papers: Adam, lr 1e-3, OneCycleLR, batch 4)."""
 
@@ -104,6 +143,7 @@ class TrainConfig:
     grad_clip: float = 10.0  # max gradient norm
     num_workers: int = 0  # DataLoader workers
     seed: int = 0  # seed for weights, shuffling and noise
+    augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 
 
 def _preset(name: str, **kw: object) -> ModelConfig:
@@ -130,7 +170,8 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
     ),
     # R2LDM's U-Net at (32, 64, 128) keeps the paper's size ratio R2LDM / MSDNet of about 2
     # (40.3 M / 20.5 M): 2.8 M / 1.2 M here.
-    "lite": _preset("lite", max_voxels_lidar=40000, r2ldm_channels=(32, 64, 128)),
+    # 50 training loop steps, as inference: the light denoiser costs ~0.4 s of a ~1 s step
+    "lite": _preset("lite", max_voxels_lidar=40000, r2ldm_channels=(32, 64, 128), train_sample_steps=50),
     "paper": _preset(
         "paper",
         max_voxels_lidar=120000,

@@ -17,7 +17,7 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.training.config import ModelConfig
+from msdnet.training.config import AugmentConfig, ModelConfig
 
 DATASETS = ("vod", "astyx", "sim")  # --dataset choices; "sim" is the simulator's VoD layout
 # Radar columns fed to the model per dataset (Astyx has magnitude instead of RCS and no
@@ -61,15 +61,35 @@ def split_indices(frame_ids: list[str], val_fraction: float) -> tuple[list[int],
 
 
 class PairDataset(Dataset):
-    """Preprocessed (radar, LiDAR) pairs of some frames of a runtime reader, cached in memory."""
+    """Preprocessed (radar, LiDAR) pairs of some frames of a runtime reader, cached in memory.
 
-    def __init__(self, frames: Any, indices: range | list[int], cfg: ModelConfig, cache: bool = True) -> None:
+    With ``augment`` (training frames), a key ``(epoch, i)`` returns frame ``i`` under the random
+    transform seeded by ``(augment_seed, epoch, i)`` (``training.augment``); a plain index
+    returns the frame as it is.
+    """
+
+    def __init__(
+        self,
+        frames: Any,
+        indices: range | list[int],
+        cfg: ModelConfig,
+        cache: bool = True,
+        augment: AugmentConfig | None = None,
+        augment_seed: int = 0,
+    ) -> None:
         self.frames = frames  # runtime reader
         self.indices = list(indices)  # reader indices of this split, in order
         self.cfg = cfg  # grid and column choice
         self.cache = cache  # keep preprocessed frames (up to CACHE_BYTES)
+        self.augment = augment if augment is not None and augment.enabled else None  # transforms
+        self.augment_seed = augment_seed  # mixed into every sample's transform seed
         self._cached: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self._bytes = 0
+
+    @property
+    def augments(self) -> bool:
+        """True when keys ``(epoch, i)`` give augmented frames (the sampler then yields them)."""
+        return self.augment is not None
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -79,8 +99,22 @@ class PairDataset(Dataset):
         """The reader's frame ids of this split."""
         return [self.frames.frame_ids[i] for i in self.indices]
 
-    def __getitem__(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """-> (radar (N, Cr) float32 [cfg.radar_columns], lidar (M, Cl) float32 [cfg.lidar_columns])."""
+    def __getitem__(self, key: int | tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """-> (radar (N, Cr) float32 [cfg.radar_columns], lidar (M, Cl) float32 [cfg.lidar_columns]).
+
+        key: a position ``i`` in this split, or ``(epoch, i)`` for the augmented frame."""
+        if isinstance(key, tuple):
+            epoch, i = (int(k) for k in key)
+            radar, lidar = self._frame(i)
+            if self.augment is None:
+                return radar, lidar
+            from msdnet.training.augment import augment_pair
+
+            rng = np.random.default_rng([self.augment_seed, epoch, i])
+            return augment_pair(radar, lidar, self.cfg.grid, self.augment, rng)
+        return self._frame(int(key))
+
+    def _frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         if i in self._cached:
             return self._cached[i]
         from msdnet.runtime.preprocess import preprocess_frame
@@ -104,18 +138,30 @@ def make_splits(
     val_fraction: float = 0.2,
     max_frames: int | None = None,
     radar_frames: int = 1,
+    holdout: float = 0.0,
+    augment: AugmentConfig | None = None,
+    augment_seed: int = 0,
 ) -> tuple[PairDataset, PairDataset]:
-    """(train, val) PairDatasets over the first ``max_frames`` frames (all when None).
+    """(fit, select) PairDatasets over the first ``max_frames`` frames (all when None).
 
-    A VoD-layout folder with published ``ImageSets/train.txt`` and ``val.txt`` (VoD itself, and
-    what the simulator writes) is split by those files, exactly as ``msdnet-bench quality
-    --split val`` reads it, unless ``max_frames`` asks for a smoke run; anything else is split by
-    contiguous ranges (``split_indices``, ``val_fraction``).
+    The frames are first split into a training range and the validation split: a VoD-layout
+    folder with published ``ImageSets/train.txt`` and ``val.txt`` (VoD itself, and what the
+    simulator writes) by those files, exactly as ``msdnet-bench quality --split val`` reads it,
+    unless ``max_frames`` asks for a smoke run; anything else by contiguous ranges
+    (``split_indices``, ``val_fraction``).
+
+    ``holdout > 0``: the last ``holdout`` share of the training range is held out (contiguous)
+    as the *selection* slice for the best checkpoint and the decoding threshold, the rest is
+    fitted, and the validation split is never returned (it is for reporting only).
+    ``holdout == 0``: (training range, validation split), the layout of runs before 2026-12.
+    ``augment`` applies to the fitted frames only.
     """
     from msdnet.runtime.datasets import VodDataset, open_dataset
 
     if dataset not in DATASETS:
         raise MsdnetError(None, f"unknown dataset {dataset!r} (choose from {', '.join(DATASETS)})")
+    if not 0.0 <= holdout < 1.0:
+        raise MsdnetError(None, f"holdout fraction must be in [0, 1), got {holdout}")
     frames = open_dataset(dataset, root, radar_frames=radar_frames)
     ids = list(frames.frame_ids) if max_frames is None else list(frames.frame_ids[:max_frames])
     published = isinstance(frames, VodDataset) and all(frames.split_file(n) for n in ("train", "val"))
@@ -127,4 +173,10 @@ def make_splits(
             raise MsdnetError(root, "ImageSets/train.txt or val.txt names none of the frames found")
     else:
         train_idx, val_idx = split_indices(ids, val_fraction)
-    return PairDataset(frames, train_idx, cfg), PairDataset(frames, val_idx, cfg)
+    if holdout > 0.0:  # at least one frame each side (smoke runs have a handful)
+        n_hold = max(1, int(round(holdout * len(train_idx))))
+        if len(train_idx) - n_hold < 1:
+            raise MsdnetError(root, f"{len(train_idx)} training frames leave none to fit after the holdout")
+        train_idx, val_idx = train_idx[:-n_hold], train_idx[-n_hold:]
+    fit = PairDataset(frames, train_idx, cfg, augment=augment, augment_seed=augment_seed)
+    return fit, PairDataset(frames, val_idx, cfg)

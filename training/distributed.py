@@ -94,19 +94,23 @@ class EpochSampler(DistributedSampler):
 
     ``set_position(epoch, skip)`` fixes the epoch's permutation and drops this rank's first
     ``skip`` samples, so a run resumed mid-epoch sees exactly the batches it had left.
+    With ``with_epoch`` it yields ``(epoch, index)`` keys instead of indices, for a dataset that
+    draws a per-sample augmentation from them (same key, same transform, on resume too).
     """
 
-    def __init__(self, dataset: Dataset, info: DistInfo, seed: int) -> None:
+    def __init__(self, dataset: Dataset, info: DistInfo, seed: int, with_epoch: bool = False) -> None:
         super().__init__(dataset, num_replicas=info.world_size, rank=info.rank, shuffle=True, seed=seed)
         self.skip = 0
+        self.with_epoch = with_epoch
 
     def set_position(self, epoch: int, skip: int) -> None:
         """Choose the epoch (permutation) and how many of this rank's samples to drop."""
         self.set_epoch(epoch)
         self.skip = skip
 
-    def __iter__(self) -> Iterator[int]:
-        return iter(list(super().__iter__())[self.skip :])
+    def __iter__(self) -> Iterator[int] | Iterator[tuple[int, int]]:
+        order = list(super().__iter__())[self.skip :]
+        return iter([(self.epoch, i) for i in order] if self.with_epoch else order)
 
     def __len__(self) -> int:
         return max(0, super().__len__() - self.skip)

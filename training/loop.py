@@ -329,7 +329,8 @@ class _Run:
         self.device = torch.device(spec.device)
         model.to(self.device)
         self.params = [p for p in model.parameters() if p.requires_grad]  # not a frozen teacher
-        self.sampler = EpochSampler(train_set, info, train_cfg.seed)
+        augments = getattr(train_set, "augments", False)  # a dataset with (epoch, i) keys
+        self.sampler = EpochSampler(train_set, info, train_cfg.seed, with_epoch=augments)
         steps_per_epoch = math.ceil(len(self.sampler) / train_cfg.batch_size)
         self.optimizer = torch.optim.Adam(self.params, lr=train_cfg.lr, weight_decay=train_cfg.weight_decay)
         self.scheduler = torch.optim.lr_scheduler.OneCycleLR(

@@ -22,22 +22,26 @@ always in eval mode), so their checkpoints carry it and ``parameters()`` with
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from torch import Tensor, nn
+from torch.func import functional_call
 
 from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
 from msdnet.training.batch import Batch, EncoderInput
 from msdnet.training.config import ModelConfig
 from msdnet.training.encoder import SparseEncoder, level_shapes
 from msdnet.training.head import ReconHead
+from msdnet.training.latent import LatentHead, norm_tensors
 from msdnet.training.losses import (
     eps_loss,
     feature_distillation,
     reconstruction_loss,
     student_total,
 )
-from msdnet.training.nn.adapter import NoiseAdapter
+from msdnet.training.nn.adapter import ForwardNoising, NoiseAdapter
 from msdnet.training.nn.denoiser import DenoiserStep, LightDenoiser, ddim_loop
 from msdnet.training.nn.rgfd import RGFD
 from msdnet.training.nn.unet import R2LDMStep, R2LDMUNet
@@ -46,7 +50,7 @@ from msdnet.training.s2d import S2D
 MODEL_KINDS = ("teacher", "student", "r2ldm")
 
 
-def _full_scale(head: ReconHead, features: Tensor) -> tuple[Tensor, Tensor]:
+def _full_scale(head: nn.Module, features: Tensor) -> tuple[Tensor, Tensor]:
     """F^D (B, C, H8, W8) -> (occupancy (B, D, H, W), offsets (B, 3, D, H, W))."""
     occ, off = head(features)
     return occ.squeeze(1), off
@@ -91,16 +95,24 @@ class _FrozenTeacherMixin(nn.Module):
         self.teacher = teacher.eval()
         abar = torch.tensor(alphas_cumprod(cfg.diffusion), dtype=torch.float32)  # (T + 1,)
         self.register_buffer("abar", abar, persistent=False)
+        shift, scale = norm_tensors(cfg)
+        self.register_buffer("latent_shift", shift, persistent=False)  # (1, C, 1, 1)
+        self.register_buffer("latent_scale", scale, persistent=False)  # (1, C, 1, 1)
 
     def train(self, mode: bool = True) -> _FrozenTeacherMixin:
         super().train(mode)
         self.teacher.eval()
         return self
 
+    @property
+    def head(self) -> LatentHead:
+        """The teacher's reconstruction head (frozen) on normalised latents (training/latent.py)."""
+        return LatentHead(self.teacher.head, self.latent_shift, self.latent_scale)
+
     def _teacher_latent(self, batch: Batch) -> tuple[Tensor, Tensor]:
-        """(F_l^D (B, C, H8, W8) without gradient, non-empty BEV cells (B, H8, W8) bool)."""
+        """(normalised F_l^D (B, C, H8, W8) without gradient, non-empty BEV cells (B, H8, W8) bool)."""
         with torch.no_grad():
-            f_l = self.teacher.features(batch.lidar)
+            f_l = (self.teacher.features(batch.lidar) - self.latent_shift) / self.latent_scale
         return f_l, batch.lidar.bev_mask(tuple(f_l.shape[2:]))
 
     def _noised(self, x0: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -118,8 +130,8 @@ class StudentModel(_FrozenTeacherMixin):
         super().__init__()
         self.cfg = cfg
         self.encoder = SparseEncoder(cfg, "radar")
-        self.rgfd = RGFD(cfg)
-        self.adapter = NoiseAdapter(cfg)
+        self.rgfd = RGFD(cfg) if cfg.use_rgfd else nn.Identity()
+        self.adapter = NoiseAdapter(cfg) if cfg.use_adapter else ForwardNoising(cfg)
         self.step = DenoiserStep(LightDenoiser(cfg))  # what denoiser_step.onnx computes
         self._attach_teacher(cfg, teacher)
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
@@ -130,38 +142,47 @@ class StudentModel(_FrozenTeacherMixin):
         """The light eps-prediction network inside the DDIM step."""
         return self.step.denoiser
 
-    @property
-    def head(self) -> ReconHead:
-        """The reconstruction head, shared with (and frozen with) the teacher."""
-        return self.teacher.head
-
     def reconstructed(self, radar: EncoderInput) -> Tensor:
-        """F_r^R (B, C, H8, W8): RGFD on the radar BEV features."""
+        """F_r^R (B, C, H8, W8): RGFD on the radar BEV features (F_r^S itself without RGFD)."""
         return self.rgfd(self.encoder.encode(radar))
 
     def denoised(self, f_r: Tensor, noise: Tensor, coeffs: np.ndarray | Tensor) -> Tensor:
-        """F_r^D: adapter (Eq. 12) then the DDIM loop over ``coeffs`` rows [t, abar_t, abar_prev]."""
-        return ddim_loop(self.step, self.adapter(f_r, noise), coeffs)
+        """F_r^D: adapter (Eq. 12) then the DDIM loop over ``coeffs`` rows [t, abar_t, abar_prev];
+        F_r^R itself when the config has no DGFD."""
+        if not self.cfg.use_dgfd:
+            return f_r
+        return ddim_loop(self._loop_step(), self.adapter(f_r, noise), coeffs)
+
+    def _loop_step(self) -> Callable[..., Tensor]:
+        """The DDIM step the training loop runs. Unless ``losses.denoiser_distill_grad``, it uses
+        detached copies of the denoiser's weights: gradients still flow through the loop's
+        activations into the adapter and RGFD, but the denoiser learns from Eq. 10 alone."""
+        if not self.training or self.cfg.losses.denoiser_distill_grad:
+            return self.step
+        state = {k: v.detach() for k, v in self.step.named_parameters()}
+        state.update(dict(self.step.named_buffers()))
+        return lambda *args: functional_call(self.step, state, args)
 
     def losses(self, batch: Batch) -> dict[str, Tensor]:
-        """Eq. 15: {"loss", "recon", "distill_rec", "distill_diff", "diff", per-scale occ/off}."""
+        """Eq. 15: {"loss", "recon", "distill_rec", "distill_diff", "diff", per-scale occ/off,
+        "gate" (mean adapter gate delta; a diagnostic, not in the loss)}."""
         w = self.cfg.losses
         f_l, nonempty = self._teacher_latent(batch)
         f_r = self.reconstructed(batch.radar)
         f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
         recon = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, w)
         distill_rec = feature_distillation(f_r, f_l, nonempty, w.alpha, w.gamma)  # Eq. 8
-        distill_diff = feature_distillation(f_d, f_l, nonempty, w.alpha, w.gamma)  # Eq. 14
-        x_t, t, eps = self._noised(f_l)
-        diff = eps_loss(self.denoiser(x_t, t), eps)  # Eq. 10
-        total = student_total(recon["recon"], distill_rec, distill_diff, diff, w)
-        return {
-            "loss": total,
-            "distill_rec": distill_rec,
-            "distill_diff": distill_diff,
-            "diff": diff,
-            **recon,
-        }
+        zero = f_r.new_zeros(())
+        out = {"distill_rec": distill_rec, "distill_diff": zero, "diff": zero}
+        if self.cfg.use_dgfd:
+            out["distill_diff"] = feature_distillation(f_d, f_l, nonempty, w.alpha, w.gamma)  # Eq. 14
+            x_t, t, eps = self._noised(f_l)
+            out["diff"] = eps_loss(self.denoiser(x_t, t), eps)  # Eq. 10
+            if isinstance(self.adapter, NoiseAdapter):
+                with torch.no_grad():
+                    out["gate"] = self.adapter.gate(f_r).mean()
+        total = student_total(recon["recon"], out["distill_rec"], out["distill_diff"], out["diff"], w)
+        return {"loss": total, **out, **recon}
 
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
@@ -188,11 +209,6 @@ class R2LDMModel(_FrozenTeacherMixin):
     def unet(self) -> R2LDMUNet:
         """The eps-prediction U-Net inside the DDIM step."""
         return self.step.unet
-
-    @property
-    def head(self) -> ReconHead:
-        """The teacher's reconstruction head (R2LDM's LPCR, trained in stage 1), frozen."""
-        return self.teacher.head
 
     def losses(self, batch: Batch) -> dict[str, Tensor]:
         """R2LDM stage 2: L2 eps-prediction on noised F_l^D given c = F_r^S: {"loss", "diff"}."""

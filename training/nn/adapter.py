@@ -63,3 +63,17 @@ class NoiseAdapter(nn.Module):
         """f_r, eps: (B, C, H, W) -> x_m = delta * f_r + (1 - delta) * eps, (B, C, H, W)."""
         delta = self.gate(f_r)
         return delta * f_r + (1.0 - delta) * eps
+
+
+class ForwardNoising(nn.Module):
+    """The ablation without a noise adapter: x_m is the forward chain at m (Eq. 9),
+    ``sqrt(abar_m) * F_r^R + sqrt(1 - abar_m) * eps``, the same for every input."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        abar = float(alphas_cumprod(cfg.diffusion)[cfg.diffusion.start_step])
+        self.signal, self.noise = math.sqrt(abar), math.sqrt(1.0 - abar)
+
+    def forward(self, f_r: Tensor, eps: Tensor) -> Tensor:
+        """f_r, eps: (B, C, H, W) -> x_m (B, C, H, W)."""
+        return self.signal * f_r + self.noise * eps

@@ -1,0 +1,181 @@
+"""The 2026-12 training recipe: augmentation, the held-out selection slice, unit-variance latents,
+the denoiser learning Eq. 10 only, the ablation switches, and the stage report."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from export_helpers import one_torch_thread, tiny_config
+
+from msdnet.runtime.grid import GRID_PRESETS
+from msdnet.training.augment import augment_pair
+from msdnet.training.batch import collate
+from msdnet.training.config import AugmentConfig
+from msdnet.training.data import make_splits
+from msdnet.training.distributed import DistInfo, EpochSampler
+from msdnet.training.latent import measure_latent_norm
+from msdnet.training.models import build_model
+
+GRID = GRID_PRESETS["tiny"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    with one_torch_thread():
+        yield
+
+
+def _cloud(n: int, cols: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(GRID.point_range[:3]), np.asarray(GRID.point_range[3:])
+    xyz = lo + (0.1 + 0.8 * rng.random((n, 3))) * (hi - lo)
+    return np.concatenate([xyz, rng.normal(size=(n, cols - 3))], axis=1).astype(np.float32)
+
+
+def test_augmentation_moves_radar_and_lidar_alike_and_is_seeded():
+    pts = _cloud(300, 5, 0)
+    pts[:, 0] = np.clip(np.abs(pts[:, 0]), 1.0, 11.0)  # in front of the sensor, inside the grid
+    no_drop = dataclasses.replace(AugmentConfig(), dropout_p=0.0, mirror_p=1.0)
+    before = pts.copy()
+    r, lidar = augment_pair(pts, pts[:, :3].copy(), GRID, no_drop, np.random.default_rng(1))
+    assert np.array_equal(pts, before)  # inputs untouched (datasets cache them)
+    # the same points went through the same transform (the LiDAR is also cut to the field of view)
+    assert len(lidar) > 0 and {tuple(p) for p in lidar} <= {tuple(p) for p in r[:, :3]}
+    assert set(r[:, 3]) <= set(pts[:, 3])  # the other columns are kept as they were
+    # mirrored: y changed sign for most points (a small yaw and scale on top)
+    assert np.corrcoef(r[:, 1], pts[np.isin(pts[:, 3], r[:, 3]), 1])[0, 1] < -0.9
+    again = augment_pair(pts, pts[:, :3].copy(), GRID, no_drop, np.random.default_rng(1))
+    assert np.array_equal(again[0], r) and np.array_equal(again[1], lidar)
+    off = augment_pair(pts, pts[:, :3].copy(), GRID, AugmentConfig.off(), np.random.default_rng(1))
+    assert np.array_equal(off[0], pts) and not AugmentConfig.off().enabled
+
+
+def test_radar_dropout_thins_but_never_empties():
+    pts = _cloud(400, 5, 2)
+    pts[:, 0] = np.clip(np.abs(pts[:, 0]), 1.0, 11.0)
+    thin = AugmentConfig(mirror_p=0.0, yaw_deg=0.0, scale=0.0, dropout_p=1.0, keep_min=0.0)
+    sizes = [len(augment_pair(pts, pts[:, :3], GRID, thin, np.random.default_rng(s))[0]) for s in range(20)]
+    assert min(sizes) >= 1 and max(sizes) <= 400 and np.mean(sizes) < 300
+
+
+def test_holdout_is_the_end_of_the_training_range_and_never_validation(astyx_root):
+    cfg = tiny_config("astyx")
+    train, val = make_splits("astyx", astyx_root, cfg, val_fraction=0.25, max_frames=40)
+    fit, select = make_splits("astyx", astyx_root, cfg, val_fraction=0.25, max_frames=40, holdout=0.2)
+    assert fit.frame_ids + select.frame_ids == train.frame_ids  # contiguous, in order
+    assert select.frame_ids == train.frame_ids[-6:]
+    assert not set(select.frame_ids) & set(val.frame_ids)
+
+
+def test_augmented_keys_are_reproducible_and_the_sampler_yields_them(astyx_root):
+    cfg = tiny_config("astyx")
+    fit, select = make_splits("astyx", astyx_root, cfg, max_frames=10, holdout=0.2, augment=AugmentConfig())
+    assert fit.augments and not select.augments
+    a, b = fit[(3, 1)], fit[(3, 1)]
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    c = fit[(4, 1)]
+    assert not np.array_equal(a[1], c[1])  # another epoch, another transform
+    assert np.array_equal(fit[1][1], fit._frame(1)[1])  # a plain index is the frame as it is
+    sampler = EpochSampler(fit, DistInfo(), seed=0, with_epoch=True)
+    sampler.set_position(2, 0)
+    keys = list(sampler)
+    assert all(k[0] == 2 for k in keys) and sorted(k[1] for k in keys) == list(range(len(fit)))
+
+
+def _astyx_batch(astyx_root: Path, n: int = 2):
+    cfg = tiny_config("astyx")
+    fit, _ = make_splits("astyx", astyx_root, cfg, max_frames=8, holdout=0.25)
+    return cfg, fit, collate([fit[i] for i in range(n)], cfg)
+
+
+def test_latent_norm_whitens_the_teacher_and_the_head_folds_it_back(astyx_root):
+    cfg, fit, batch = _astyx_batch(astyx_root)
+    torch.manual_seed(0)
+    teacher = build_model("teacher", cfg)
+    norm = measure_latent_norm(teacher, fit, cfg, frames=len(fit))
+    assert len(norm) == cfg.bev_channels
+    student = build_model("student", dataclasses.replace(cfg, latent_norm=norm), teacher=teacher)
+    z, _ = student._teacher_latent(collate([fit[i] for i in range(len(fit))], cfg))
+    assert abs(float(z.mean())) < 0.05 and abs(float(z.std()) - 1.0) < 0.05
+    with torch.no_grad():
+        f = teacher.features(batch.lidar)
+        z2, _ = student._teacher_latent(batch)
+        occ_raw, _ = teacher.head(f)
+        occ_norm, _ = student.head(z2)
+    torch.testing.assert_close(occ_norm, occ_raw, atol=1e-5, rtol=1e-4)
+    assert "latent_shift" not in student.state_dict()  # the config carries it, not the weights
+
+
+def test_the_denoiser_learns_eq10_only_unless_asked(astyx_root):
+    cfg, _, batch = _astyx_batch(astyx_root)
+
+    def denoiser_grads(grad_through_loop: bool, diff_only: bool) -> list[torch.Tensor]:
+        losses = dataclasses.replace(cfg.losses, denoiser_distill_grad=grad_through_loop)
+        torch.manual_seed(0)
+        model = build_model("student", dataclasses.replace(cfg, losses=losses)).train()
+        torch.manual_seed(1)
+        terms = model.losses(batch)
+        loss = cfg.losses.lambdas[3] * terms["diff"] if diff_only else terms["loss"]
+        loss.backward()
+        grads = [p.grad for p in model.step.parameters()]
+        assert model.rgfd.down1.conv.weight.grad is not None or diff_only  # the loop still trains RGFD
+        return grads
+
+    eq10 = denoiser_grads(False, diff_only=True)
+    for a, b in zip(denoiser_grads(False, diff_only=False), eq10, strict=True):
+        torch.testing.assert_close(a, b)
+    full = denoiser_grads(True, diff_only=False)
+    assert any(not torch.allclose(a, b) for a, b in zip(full, eq10, strict=True))
+
+
+@pytest.mark.parametrize("switch", ["use_rgfd", "use_dgfd", "use_adapter"])
+def test_ablation_switches_build_and_train(astyx_root, switch):
+    cfg, _, batch = _astyx_batch(astyx_root)
+    torch.manual_seed(0)
+    model = build_model("student", dataclasses.replace(cfg, **{switch: False})).train()
+    terms = model.losses(batch)
+    terms["loss"].backward()
+    assert torch.isfinite(terms["loss"])
+    if switch == "use_dgfd":
+        assert float(terms["distill_diff"]) == 0.0 and float(terms["diff"]) == 0.0
+        assert all(p.grad is None for p in model.step.parameters())
+    else:
+        assert float(terms["diff"]) > 0.0
+    assert ("gate" in terms) == (switch not in ("use_dgfd", "use_adapter"))
+    occ, off = model.eval().predict(batch.radar)
+    assert occ.shape[0] == 2 and off.shape[1] == 3
+
+
+def test_stage_report_on_a_tiny_student(astyx_root, tmp_path):
+    from click.testing import CliRunner
+
+    from msdnet.benchmarks.cli import main
+    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
+    from msdnet.training.config import TrainConfig
+
+    cfg = tiny_config("astyx")
+    torch.manual_seed(0)
+    model = build_model("student", cfg)
+    ckpt = tmp_path / "ckpt"
+    save_checkpoint(ckpt, model, cfg, CheckpointState(kind="student", train=TrainConfig(), epochs=1))
+    args = ["stages", str(ckpt), "--dataset", "astyx", "--data", str(astyx_root), "--max-frames", "2"]
+    res = CliRunner().invoke(main, [*args, "--threads", "1", "--out", str(tmp_path / "out")])
+    assert res.exit_code == 0, res.output
+    import json
+
+    doc = json.loads((tmp_path / "out" / "stages.json").read_text())
+    assert len(doc["eps_mse"]["buckets"]) == 10 and doc["frames"] == 2
+    assert 0.0 < doc["gate"]["all"]["min"] <= doc["gate"]["all"]["max"] < 1.0
+    # x_t is nearly eps at t -> T: the trivial baseline is near 0 there and near 1+ at small t
+    buckets = doc["eps_mse"]["buckets"]
+    assert buckets[-1]["x_t"] < 0.01 < buckets[0]["x_t"]
+    assert {"before_loop", "after_loop"} == set(doc["loop"])
+    teacher = tmp_path / "teacher"
+    state = CheckpointState(kind="teacher", train=TrainConfig(), epochs=1)
+    save_checkpoint(teacher, model.teacher, cfg, state)
+    res = CliRunner().invoke(main, ["stages", str(teacher), *args[2:], "--out", str(tmp_path / "o2")])
+    assert res.exit_code != 0 and "teacher checkpoint" in res.output
