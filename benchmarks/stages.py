@@ -64,8 +64,12 @@ def stage_report(
     if state.kind != "student":
         raise MsdnetError(checkpoint, f"is a {state.kind} checkpoint; stages reports on a student")
     thr = cfg.threshold if threshold is None else threshold
-    ds = open_dataset(dataset, root, None if split == "all" else split)
-    frame_ids = pick_frames(list(ds.frame_ids), max_frames)
+    ds = open_dataset(dataset, root, split if split in ("train", "val") else None)
+    ids = list(ds.frame_ids)
+    if split == "select":  # the run's held-out slice of its training range (model selection)
+        first, last, _ = state.dataset["val_frames"]
+        ids = ids[ids.index(first) : ids.index(last) + 1]
+    frame_ids = pick_frames(ids, max_frames)
     rng = np.random.default_rng(seed)
     abar = alphas_cumprod(cfg.diffusion)
     big_t = cfg.diffusion.num_train_steps
@@ -220,7 +224,13 @@ def write_report(doc: dict[str, Any], out: Path) -> None:
 @click.argument("checkpoint", type=click.Path(path_type=Path))
 @click.option("--dataset", required=True, type=click.Choice(["vod", "astyx", "sim"]), help="Data layout.")
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset root.")
-@click.option("--split", type=click.Choice(["train", "val", "all"]), default="val", show_default=True)
+@click.option(
+    "--split",
+    type=click.Choice(["train", "val", "all", "select"]),
+    default="val",
+    show_default=True,
+    help="Frames: a split, or select = the run's held-out selection slice of its training range.",
+)
 @click.option("--max-frames", type=click.IntRange(min=1), help="This many frames, spread evenly.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of t, eps and the adapter noise.")
 @click.option("--threshold", type=float, help="Decoding threshold [the checkpoint's].")

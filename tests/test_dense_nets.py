@@ -228,7 +228,7 @@ def test_per_sample_steps_in_a_batch():
     """Training feeds t and abar per sample, (B,): each sample must see only its own step."""
     cfg = MODEL_PRESETS["tiny"]
     torch.manual_seed(0)
-    step = DenoiserStep(LightDenoiser(cfg)).eval()
+    step = DenoiserStep(_trained_head(LightDenoiser(cfg))).eval()
     x = bev(cfg, 2, seed=12)
     rows = torch.from_numpy(ddim.step_coefficients(cfg.diffusion)[[0, 20]])  # (2, 3)
     with torch.no_grad():
@@ -258,11 +258,23 @@ def test_ddim_loop_with_oracle_noise_recovers_x0():
     torch.testing.assert_close(out, x0, rtol=0, atol=1e-4)
 
 
+def _trained_head(net: LightDenoiser) -> LightDenoiser:
+    """The denoiser's head starts at zero (eps = its linear guess); give it weights, as training would."""
+    with torch.no_grad():
+        torch.nn.init.normal_(net.head[2].weight, std=0.1)
+    return net
+
+
 def test_ddim_loop_gradients_flow():
     cfg = MODEL_PRESETS["tiny"]
     torch.manual_seed(0)
     net = LightDenoiser(cfg)
     x = bev(cfg).requires_grad_(True)
+    t = torch.tensor([300.0])
+    with torch.no_grad():  # the zero-initialised head starts at the linear guess sqrt(1 - abar_t) x_t
+        a = float(ddim.alphas_cumprod(cfg.diffusion)[300])
+        torch.testing.assert_close(net(x, t), (1.0 - a) ** 0.5 * x)
+        torch.nn.init.normal_(net.head[2].weight, std=0.1)  # a trained head, for the gradients below
     coeffs = ddim.step_coefficients(cfg.diffusion, cfg.train_sample_steps)
     out = ddim_loop(DenoiserStep(net), x, coeffs)
     manual = x
@@ -279,7 +291,7 @@ def test_ddim_loop_gradients_flow():
 def test_denoiser_step_onnx_matches_torch(preset):
     cfg = MODEL_PRESETS[preset]
     torch.manual_seed(0)
-    step = DenoiserStep(LightDenoiser(cfg)).eval()
+    step = DenoiserStep(_trained_head(LightDenoiser(cfg))).eval()
     x_t = bev(cfg, 1, seed=9)
     traced = (x_t, *coeff_row(cfg, 0))
     spec = onnx_spec.DENOISER_STEP

@@ -179,3 +179,23 @@ def test_stage_report_on_a_tiny_student(astyx_root, tmp_path):
     save_checkpoint(teacher, model.teacher, cfg, state)
     res = CliRunner().invoke(main, ["stages", str(teacher), *args[2:], "--out", str(tmp_path / "o2")])
     assert res.exit_code != 0 and "teacher checkpoint" in res.output
+
+
+def test_the_gate_learns_from_the_alignment_loss_alone(astyx_root):
+    """adapter_align > 0: the adapter's gradient is exactly that of the alignment term (the loop
+    sees the gate as a constant); 0: the gate learns end to end through Eq. 14."""
+    cfg, _, batch = _astyx_batch(astyx_root)
+
+    def adapter_grads(align: float, term: str) -> list[torch.Tensor]:
+        losses = dataclasses.replace(cfg.losses, adapter_align=align)
+        torch.manual_seed(0)
+        model = build_model("student", dataclasses.replace(cfg, losses=losses)).train()
+        torch.manual_seed(1)
+        terms = model.losses(batch)
+        (terms[term] * (align if term == "align" else 1.0)).backward()
+        return [p.grad if p.grad is not None else torch.zeros_like(p) for p in model.adapter.parameters()]
+
+    for a, b in zip(adapter_grads(1.0, "loss"), adapter_grads(1.0, "align"), strict=True):
+        torch.testing.assert_close(a, b)
+    assert any(float(g.abs().sum()) > 0 for g in adapter_grads(0.0, "distill_diff"))
+    assert all(float(g.abs().sum()) == 0 for g in adapter_grads(1.0, "distill_diff"))

@@ -39,6 +39,7 @@ def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
 # that is measured on the teacher when a student / R2LDM run starts
 R2LDM_ONLY = ("r2ldm_channels", "r2ldm_sample_steps")
 NOT_TEACHER = (*R2LDM_ONLY, "train_sample_steps", "latent_norm", "use_rgfd", "use_dgfd", "use_adapter")
+NOT_TEACHER = (*NOT_TEACHER, "diffusion")
 ABLATIONS = {"rgfd": "use_rgfd", "dgfd": "use_dgfd", "adapter": "use_adapter"}  # --ablate NAME -> field
 
 
@@ -119,6 +120,13 @@ def _plan(
     show_default=True,
     help="Seeded mirror / yaw / scale / radar dropout of the training frames.",
 )
+@click.option("--start-step", type=int, default=None, help="Diffusion start step m of the student [500].")
+@click.option(
+    "--adapter-align",
+    type=float,
+    default=None,
+    help="Weight of the noise adapter's alignment loss [1; 0 = gate trained end to end].",
+)
 @click.option(
     "--ablate",
     multiple=True,
@@ -162,6 +170,8 @@ def main(
     zeta: float | None,
     holdout: float,
     augment: bool,
+    start_step: int | None,
+    adapter_align: float | None,
     ablate: tuple[str, ...],
     latent_frames: int,
     init: Path | None,
@@ -188,6 +198,15 @@ def main(
         if zeta < 0:
             raise MsdnetError("--zeta", f"must be >= 0, got {zeta}")
         cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, zeta=zeta))
+    if start_step is not None:
+        if not 0 < start_step <= cfg.diffusion.num_train_steps:
+            top = cfg.diffusion.num_train_steps
+            raise MsdnetError("--start-step", f"must be in 1..{top}, got {start_step}")
+        cfg = replace(cfg, diffusion=replace(cfg.diffusion, start_step=start_step))
+    if adapter_align is not None:
+        if adapter_align < 0:
+            raise MsdnetError("--adapter-align", f"must be >= 0, got {adapter_align}")
+        cfg = replace(cfg, losses=replace(cfg.losses, adapter_align=adapter_align))
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")

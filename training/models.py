@@ -165,15 +165,26 @@ class StudentModel(_FrozenTeacherMixin):
 
     def losses(self, batch: Batch) -> dict[str, Tensor]:
         """Eq. 15: {"loss", "recon", "distill_rec", "distill_diff", "diff", per-scale occ/off,
-        "gate" (mean adapter gate delta; a diagnostic, not in the loss)}."""
+        "align" (the adapter's alignment loss, when ``losses.adapter_align > 0``), "gate" (mean
+        adapter gate delta; a diagnostic, not in the loss)}."""
         w = self.cfg.losses
         f_l, nonempty = self._teacher_latent(batch)
         f_r = self.reconstructed(batch.radar)
-        f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
-        recon = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, w)
-        distill_rec = feature_distillation(f_r, f_l, nonempty, w.alpha, w.gamma)  # Eq. 8
         zero = f_r.new_zeros(())
-        out = {"distill_rec": distill_rec, "distill_diff": zero, "diff": zero}
+        out = {"distill_rec": zero, "distill_diff": zero, "diff": zero}
+        eps_m = torch.randn_like(f_r)
+        if self.cfg.use_dgfd and w.adapter_align > 0 and isinstance(self.adapter, NoiseAdapter):
+            delta = self.adapter.gate(f_r)  # (B, C, 1, 1)
+            d = delta.detach()  # the loop sees the gate as a constant; F_r^R still trains through it
+            f_d = ddim_loop(self._loop_step(), d * f_r + (1.0 - d) * eps_m, self.train_coeffs)
+            a_m = self.abar[self.cfg.diffusion.start_step]
+            target = a_m.sqrt() * f_l + (1.0 - a_m).sqrt() * eps_m  # Eq. 9 at m, same eps
+            x_m = delta * f_r.detach() + (1.0 - delta) * eps_m
+            out["align"] = eps_loss(x_m, target)
+        else:
+            f_d = self.denoised(f_r, eps_m, self.train_coeffs)
+        recon = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, w)
+        out["distill_rec"] = feature_distillation(f_r, f_l, nonempty, w.alpha, w.gamma)  # Eq. 8
         if self.cfg.use_dgfd:
             out["distill_diff"] = feature_distillation(f_d, f_l, nonempty, w.alpha, w.gamma)  # Eq. 14
             x_t, t, eps = self._noised(f_l)
@@ -182,6 +193,8 @@ class StudentModel(_FrozenTeacherMixin):
                 with torch.no_grad():
                     out["gate"] = self.adapter.gate(f_r).mean()
         total = student_total(recon["recon"], out["distill_rec"], out["distill_diff"], out["diff"], w)
+        if "align" in out:
+            total = total + w.adapter_align * out["align"]
         return {"loss": total, **out, **recon}
 
     def predict(
