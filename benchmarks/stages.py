@@ -4,8 +4,10 @@ On frames of a split (validation by default; never used for training or selectio
 
 - **Denoiser (Eq. 10).** eps-MSE of the light denoiser on the frame's normalised teacher latent
   noised at t (Eq. 9), per bucket of 100 steps (t drawn uniformly inside it), with the trivial
-  baselines beside it: predicting 0 scores 1, and ``x_t`` itself (right at t -> T) scores
-  ``abar_t E[z^2] + (1 - sqrt(1 - abar_t))^2``-ish; a working denoiser beats both over the range.
+  baselines beside it: predicting 0 scores 1, ``x_t`` itself (right at t -> T) scores about
+  ``abar_t + (1 - sqrt(1 - abar_t))^2``, and the best linear guess ``sqrt(1 - abar_t) x_t`` (where
+  the denoiser starts, training/nn/denoiser.py) about ``abar_t`` on unit-variance latents; a
+  denoiser that learned the latents' structure beats all three.
 - **Noise adapter (Eq. 12).** The gate delta per frame and channel: percentiles over all, the spread
   of the per-frame mean across frames (does it follow the input?) and across channels.
 - **Loop (Eq. 13-14).** Distance of F_r^R (before the loop) and F_r^D (after it) to the teacher's
@@ -76,6 +78,7 @@ def stage_report(
     edges = np.linspace(0, big_t, T_BUCKETS + 1).astype(int)  # bucket k: t in (edges[k], edges[k+1]]
     mse = {"denoiser": [[] for _ in range(T_BUCKETS)], "zero": [[] for _ in range(T_BUCKETS)]}
     mse["x_t"] = [[] for _ in range(T_BUCKETS)]
+    mse["linear"] = [[] for _ in range(T_BUCKETS)]
     gates, dist, pts = [], {"before_loop": [], "after_loop": []}, {"before_loop": [], "after_loop": []}
     coeffs = step_coefficients(cfg.diffusion)
     model.eval()
@@ -97,6 +100,7 @@ def stage_report(
                 mse["denoiser"][k].append(float(((pred - eps) ** 2).mean()))
                 mse["zero"][k].append(float((eps**2).mean()))
                 mse["x_t"][k].append(float(((x_t - eps) ** 2).mean()))
+                mse["linear"][k].append(float(((x_t * (1.0 - a) ** 0.5 - eps) ** 2).mean()))
             f_r = model.reconstructed(batch.radar)
             noise = torch.from_numpy(rng.standard_normal(tuple(f_r.shape), dtype=np.float32))
             if isinstance(model.adapter, NoiseAdapter) and cfg.use_dgfd:
@@ -176,13 +180,15 @@ def stage_markdown(doc: dict[str, Any]) -> str:
         "",
         "## Denoiser eps-MSE per t bucket (normalised teacher latents; predicting 0 scores ~1)",
         "",
-        "| t | denoiser | predict 0 | predict x_t |",
-        "|---|---:|---:|---:|",
+        "| t | denoiser | predict 0 | predict x_t | linear guess sqrt(1 - abar_t) x_t |",
+        "|---|---:|---:|---:|---:|",
     ]
     for b in doc["eps_mse"]["buckets"]:
-        lines.append(f"| {b['t'][0]}-{b['t'][1]} | {b['denoiser']:.3f} | {b['zero']:.3f} | {b['x_t']:.3f} |")
+        cells = " | ".join(f"{b[k]:.3f}" for k in ("zero", "x_t", "linear"))
+        lines.append(f"| {b['t'][0]}-{b['t'][1]} | {b['denoiser']:.3f} | {cells} |")
     m = doc["eps_mse"]["mean_over_t"]
-    lines.append(f"| **mean over t** | **{m['denoiser']:.3f}** | {m['zero']:.3f} | {m['x_t']:.3f} |")
+    cells = " | ".join(f"{m[k]:.3f}" for k in ("zero", "x_t", "linear"))
+    lines.append(f"| **mean over t** | **{m['denoiser']:.3f}** | {cells} |")
     if "gate" in doc:
         g = doc["gate"]
         lines += ["", "## Adapter gate delta (Eq. 12: x_m = delta F_r^R + (1 - delta) eps)", "",

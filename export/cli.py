@@ -187,9 +187,6 @@ def main(
     model, cfg, state = load_checkpoint(checkpoint)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
-    if not cfg.use_dgfd:
-        msg = "an ablation without DGFD runs in torch only (msdnet-bench quality --ablation)"
-        raise MsdnetError(checkpoint, msg)
     if calibrate:
         holdout = float(state.dataset.get("holdout", 0.0))
         threshold = _calibrated(model, cfg, dataset, data, calibrate, seed, holdout)

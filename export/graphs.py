@@ -42,6 +42,25 @@ class RgfdAdapterGraph(nn.Module):
         return self.adapter(self.rgfd(bev_features), noise)
 
 
+class NoDgfdAdapterGraph(nn.Module):
+    """The "w/o DGFD" ablation's ``rgfd_adapter.onnx``: F_r^R itself; eps is read (times 0) so
+    the graph keeps the contract's inputs and the runtime runs it unchanged."""
+
+    def __init__(self, rgfd: nn.Module) -> None:
+        super().__init__()
+        self.rgfd = rgfd
+
+    def forward(self, bev_features: Tensor, noise: Tensor) -> Tensor:
+        return self.rgfd(bev_features) + 0.0 * noise
+
+
+class IdentityStepGraph(nn.Module):
+    """The "w/o DGFD" ablation's ``denoiser_step.onnx``: x_prev = x_t (the loop changes nothing)."""
+
+    def forward(self, x_t: Tensor, t: Tensor, abar_t: Tensor, abar_prev: Tensor) -> Tensor:
+        return x_t + 0.0 * (t + abar_t + abar_prev)
+
+
 class PackedHeadGraph(nn.Module):
     """``recon_head.onnx``: the head's full scale in the packed child layout (``ReconHead.packed``)."""
 
@@ -55,6 +74,13 @@ class PackedHeadGraph(nn.Module):
 
 def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Module]]:
     """(contract, torch module) per graph of a ``student`` or ``r2ldm`` model, pipeline order."""
+    if kind == "student" and not model.cfg.use_dgfd:  # ablation: same four graphs, loop = identity
+        return [
+            (onnx_spec.ENCODER, model.encoder),
+            (onnx_spec.RGFD_ADAPTER, NoDgfdAdapterGraph(model.rgfd)),
+            (onnx_spec.DENOISER_STEP, IdentityStepGraph()),
+            (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
+        ]
     if kind == "student":
         return [
             (onnx_spec.ENCODER, model.encoder),

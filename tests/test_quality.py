@@ -227,3 +227,26 @@ def test_checkpoint_beside_its_export_uses_the_export_threshold(tmp_path):
     assert {m.threshold for m in methods if m.kind == "student"} == {0.4}
     alone = build_methods([], [ckpt], [], RunSettings(threads=1))
     assert alone[-1].threshold == 0.5  # the checkpoint's own config
+
+
+def test_teacher_row_reads_the_lidar_and_keep_radar_row_adds_the_radar(astyx_root, tmp_path):
+    """A teacher checkpoint is scored on the frame's LiDAR (the student's ceiling), at the MSDNet
+    export's threshold; --keep-radar adds "MSDNet + radar points", the union with the input."""
+    from export_helpers import make_checkpoint
+
+    from msdnet.benchmarks.eval_methods import RunSettings, build_methods
+    from msdnet.runtime.datasets import open_dataset
+
+    art = make_artifact(tmp_path, "student", "astyx")
+    teacher = make_checkpoint(tmp_path / "teacher", "teacher", "astyx")
+    methods = build_methods([art], [teacher], [], RunSettings(threads=1), keep_radar=True)
+    by_role = {m.role: m for m in methods}
+    assert [m.role for m in methods] == ["radar", "msdnet", "ablation", "teacher"]
+    assert by_role["teacher"].input == "lidar" and by_role["teacher"].name == "Teacher (LiDAR in) (torch)"
+    assert by_role["teacher"].threshold == by_role["msdnet"].pipe.artifact.threshold
+    grid = by_role["msdnet"].grid
+    run = evaluate_quality(open_dataset("astyx", astyx_root), ["000000"], methods, grid, progress=False)
+    plain, joined = (run.scores[m.name][0].num_points for m in methods[1:3])
+    radar_in_grid = run.scores["4D radar"][0].num_points
+    assert joined == plain + radar_in_grid
+    assert run.scores[by_role["teacher"].name][0].num_points > 0  # it decoded from the LiDAR

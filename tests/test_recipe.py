@@ -199,3 +199,27 @@ def test_the_gate_learns_from_the_alignment_loss_alone(astyx_root):
         torch.testing.assert_close(a, b)
     assert any(float(g.abs().sum()) > 0 for g in adapter_grads(0.0, "distill_diff"))
     assert all(float(g.abs().sum()) == 0 for g in adapter_grads(1.0, "distill_diff"))
+
+
+def test_the_no_dgfd_ablation_exports_with_an_identity_loop(astyx_root, tmp_path):
+    """w/o DGFD runs in the unchanged runtime: the adapter graph passes F_r^R, the step graph is
+    the identity; onnxruntime gives the torch model's points."""
+    from msdnet.benchmarks.eval_methods import PipelineMethod, RunSettings, TorchMethod
+    from msdnet.export.cli import export_model
+    from msdnet.runtime.datasets import open_dataset
+    from msdnet.runtime.preprocess import preprocess_frame
+    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
+    from msdnet.training.config import TrainConfig
+
+    cfg = dataclasses.replace(tiny_config("astyx"), use_dgfd=False)
+    torch.manual_seed(0)
+    model = build_model("student", cfg).eval()
+    ckpt = tmp_path / "ckpt"
+    save_checkpoint(ckpt, model, cfg, CheckpointState(kind="student", train=TrainConfig(), epochs=1))
+    export_model(model, "student", cfg, tmp_path / "onnx", str(ckpt))
+    frame = preprocess_frame(open_dataset("astyx", astyx_root).get("000000"), cfg.grid)
+    settings = RunSettings(threads=1)
+    onnx_pts = PipelineMethod(tmp_path / "onnx", settings).run(frame.radar, seed=3)
+    torch_pts = TorchMethod(ckpt, settings).run(frame.radar, seed=4)  # no noise reaches the output
+    assert len(onnx_pts) > 0 and onnx_pts.shape == torch_pts.shape
+    np.testing.assert_allclose(onnx_pts, torch_pts, atol=1e-4)
