@@ -260,7 +260,8 @@ def _make_unique(methods: list[Method]) -> None:
     then make the keys unique with a counter."""
     counts = Counter(m.name for m in methods)
     for m in methods:
-        if counts[m.name] > 1 and m.role != "ablation" and m.name.endswith(")"):
+        named_by_us = m.role != "ablation" or getattr(m, "keep_radar", False)  # not a user's NAME=
+        if counts[m.name] > 1 and named_by_us and m.name.endswith(")"):
             m.name = f"{m.name[:-1]}, {Path(m.source).name})"
     repeated = [name for name, n in Counter(m.name for m in methods).items() if n > 1]
     if repeated:
