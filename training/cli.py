@@ -48,7 +48,12 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     folder, tcfg, tstate = read_checkpoint(path)
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
-    differs = config_diff(tcfg, cfg, ignore=NOT_TEACHER)
+    # the student-only loss settings do not concern the teacher either
+    student_only = {
+        "denoiser_distill_grad": tcfg.losses.denoiser_distill_grad,
+        "adapter_align": tcfg.losses.adapter_align,
+    }
+    differs = config_diff(tcfg, replace(cfg, losses=replace(cfg.losses, **student_only)), ignore=NOT_TEACHER)
     if differs:
         fields = ", ".join(differs)
         raise MsdnetError(folder, f"teacher config differs from this run: {fields}"[:300])
