@@ -49,10 +49,7 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
     # the student-only loss settings do not concern the teacher either
-    student_only = {
-        "denoiser_distill_grad": tcfg.losses.denoiser_distill_grad,
-        "adapter_align": tcfg.losses.adapter_align,
-    }
+    student_only = {k: getattr(tcfg.losses, k) for k in ("lambdas", "denoiser_distill_grad", "adapter_align")}
     differs = config_diff(tcfg, replace(cfg, losses=replace(cfg.losses, **student_only)), ignore=NOT_TEACHER)
     if differs:
         fields = ", ".join(differs)
@@ -125,6 +122,11 @@ def _plan(
     show_default=True,
     help="Seeded mirror / yaw / scale / radar dropout of the training frames.",
 )
+@click.option(
+    "--lambdas",
+    default=None,
+    help="Eq. 15 weights of recon, Eq. 8, Eq. 14, Eq. 10 as four numbers a,b,c,d [1,0.01,5,10].",
+)
 @click.option("--start-step", type=int, default=None, help="Diffusion start step m of the student [500].")
 @click.option(
     "--adapter-align",
@@ -175,6 +177,7 @@ def main(
     zeta: float | None,
     holdout: float,
     augment: bool,
+    lambdas: str | None,
     start_step: int | None,
     adapter_align: float | None,
     ablate: tuple[str, ...],
@@ -203,6 +206,14 @@ def main(
         if zeta < 0:
             raise MsdnetError("--zeta", f"must be >= 0, got {zeta}")
         cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, zeta=zeta))
+    if lambdas is not None:
+        try:
+            weights = tuple(float(v) for v in lambdas.split(","))
+        except ValueError:
+            weights = ()
+        if len(weights) != 4 or any(v < 0 for v in weights):
+            raise MsdnetError("--lambdas", f"expected four numbers >= 0 like 1,0.01,5,10, got {lambdas!r}")
+        cfg = replace(cfg, losses=replace(cfg.losses, lambdas=weights))
     if start_step is not None:
         if not 0 < start_step <= cfg.diffusion.num_train_steps:
             top = cfg.diffusion.num_train_steps
