@@ -62,7 +62,10 @@ def test_quick_run_has_every_key_with_finite_values(quick):
     parts = sum(stages[k]["median"] for k in STAGES if k != "total")
     assert parts <= stages["total"]["p90"] * 1.5  # stages add up to (about) the total
     for key in RATIOS:
-        assert _finite(res["ratios"][key]) and res["ratios"][key] > -1, key
+        assert _finite(res["ratios"][key]), key
+        # the loop-overhead share compares two separately timed medians: on a loaded machine it
+        # can fall below -1 (seen in CI with other jobs running); the other ratios cannot
+        assert key == "loop_overhead_share" or res["ratios"][key] > -1, key
     steps = [row["steps"] for row in res["steps_sweep"]]
     assert {3, 10, 50, 100} <= set(steps) and steps == sorted(steps)
     assert all(_finite(row["ms"]) and row["ms"] > 0 for row in res["steps_sweep"])
