@@ -110,15 +110,21 @@ def test_latent_norm_whitens_the_teacher_and_the_head_folds_it_back(astyx_root):
     assert "latent_shift" not in student.state_dict()  # the config carries it, not the weights
 
 
+def _student_terms(cfg, batch, **loss_fields: object) -> tuple[torch.nn.Module, dict[str, torch.Tensor]]:
+    """A fresh tiny student with ``cfg.losses`` fields replaced, and its loss terms on ``batch``
+    (same weights and noise every call)."""
+    losses = dataclasses.replace(cfg.losses, **loss_fields)
+    torch.manual_seed(0)
+    model = build_model("student", dataclasses.replace(cfg, losses=losses)).train()
+    torch.manual_seed(1)
+    return model, model.losses(batch)
+
+
 def test_the_denoiser_learns_eq10_only_unless_asked(astyx_root):
     cfg, _, batch = _astyx_batch(astyx_root)
 
     def denoiser_grads(grad_through_loop: bool, diff_only: bool) -> list[torch.Tensor]:
-        losses = dataclasses.replace(cfg.losses, denoiser_distill_grad=grad_through_loop)
-        torch.manual_seed(0)
-        model = build_model("student", dataclasses.replace(cfg, losses=losses)).train()
-        torch.manual_seed(1)
-        terms = model.losses(batch)
+        model, terms = _student_terms(cfg, batch, denoiser_distill_grad=grad_through_loop)
         loss = cfg.losses.lambdas[3] * terms["diff"] if diff_only else terms["loss"]
         loss.backward()
         grads = [p.grad for p in model.step.parameters()]
@@ -187,11 +193,7 @@ def test_the_gate_learns_from_the_alignment_loss_alone(astyx_root):
     cfg, _, batch = _astyx_batch(astyx_root)
 
     def adapter_grads(align: float, term: str) -> list[torch.Tensor]:
-        losses = dataclasses.replace(cfg.losses, adapter_align=align)
-        torch.manual_seed(0)
-        model = build_model("student", dataclasses.replace(cfg, losses=losses)).train()
-        torch.manual_seed(1)
-        terms = model.losses(batch)
+        model, terms = _student_terms(cfg, batch, adapter_align=align)
         (terms[term] * (align if term == "align" else 1.0)).backward()
         return [p.grad if p.grad is not None else torch.zeros_like(p) for p in model.adapter.parameters()]
 

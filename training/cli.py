@@ -127,7 +127,7 @@ def _plan(
     default=None,
     help="Eq. 15 weights of recon, Eq. 8, Eq. 14, Eq. 10 as four numbers a,b,c,d [1,0.01,5,10].",
 )
-@click.option("--start-step", type=int, default=None, help="Diffusion start step m of the student [500].")
+@click.option("--start-step", type=int, default=None, help="Student diffusion start step m [preset: 100].")
 @click.option(
     "--adapter-align",
     type=float,
