@@ -142,6 +142,11 @@ def _downstream(
         read_sequences(opts["data"]), int_tuple("--sequences", opts["sequences_text"], 0), opts["max_frames"]
     )
     methods, grid = _methods(opts)
+    for m in methods:
+        if m.input != "radar":  # a teacher checkpoint: quality scores it on LiDAR, this task cannot
+            raise MsdnetError(
+                m.source, f"a {m.kind} checkpoint takes LiDAR, not radar: use it with quality only"
+            )
     ds = VodDataset(opts["data"])
     evaluation = {"data": str(opts["data"])}
     return run_downstream(task, ds, seqs, methods, grid, opts["out"], evaluation, place_options, opts["seed"])

@@ -155,3 +155,13 @@ def test_downstream_needs_a_simulated_folder(astyx_root, tmp_path):
     assert r.exit_code == 2 and "sequences.json" in r.output
     r = CliRunner().invoke(place_command, ["--data", str(astyx_root), "--out", str(tmp_path), "--ks", "0,1"])
     assert r.exit_code == 2 and "--ks" in r.output
+
+
+def test_downstream_refuses_a_teacher_checkpoint(sim_data, tmp_path):
+    """A teacher takes LiDAR: quality scores it on the frame's LiDAR, odometry cannot."""
+    from export_helpers import make_checkpoint
+
+    teacher = make_checkpoint(tmp_path / "teacher", "teacher", "vod")
+    args = ["--data", str(sim_data), "--out", str(tmp_path / "o"), "--checkpoint", str(teacher)]
+    r = CliRunner().invoke(odometry_command, args)
+    assert r.exit_code == 2 and "takes LiDAR, not radar" in r.output and not (tmp_path / "o").exists()
