@@ -76,9 +76,10 @@ def stage_report(
     abar = alphas_cumprod(cfg.diffusion)
     big_t = cfg.diffusion.num_train_steps
     edges = np.linspace(0, big_t, T_BUCKETS + 1).astype(int)  # bucket k: t in (edges[k], edges[k+1]]
-    mse = {"denoiser": [[] for _ in range(T_BUCKETS)], "zero": [[] for _ in range(T_BUCKETS)]}
-    mse["x_t"] = [[] for _ in range(T_BUCKETS)]
-    mse["linear"] = [[] for _ in range(T_BUCKETS)]
+    # eps-MSE per t bucket of the denoiser and of the three baselines (module docstring)
+    mse: dict[str, list[list[float]]] = {
+        name: [[] for _ in range(T_BUCKETS)] for name in ("denoiser", "zero", "x_t", "linear")
+    }
     gates, dist, pts = [], {"before_loop": [], "after_loop": []}, {"before_loop": [], "after_loop": []}
     coeffs = step_coefficients(cfg.diffusion)
     model.eval()

@@ -38,8 +38,15 @@ def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
 # config fields the teacher does not use: R2LDM's, the student's, and the latent normalisation
 # that is measured on the teacher when a student / R2LDM run starts
 R2LDM_ONLY = ("r2ldm_channels", "r2ldm_sample_steps")
-NOT_TEACHER = (*R2LDM_ONLY, "train_sample_steps", "latent_norm", "use_rgfd", "use_dgfd", "use_adapter")
-NOT_TEACHER = (*NOT_TEACHER, "diffusion")
+NOT_TEACHER = (
+    *R2LDM_ONLY,
+    "train_sample_steps",
+    "latent_norm",
+    "use_rgfd",
+    "use_dgfd",
+    "use_adapter",
+    "diffusion",
+)
 ABLATIONS = {"rgfd": "use_rgfd", "dgfd": "use_dgfd", "adapter": "use_adapter"}  # --ablate NAME -> field
 
 

@@ -70,7 +70,9 @@ class ModelConfig:
     # the exported head de-normalises. () = identity (models trained before 2026-12)
     latent_norm: tuple[tuple[float, float], ...] = ()
     use_rgfd: bool = True  # ablation switch: False = F_r^R is the encoder's F_r^S (no RGFD)
-    use_dgfd: bool = True  # ablation switch: False = no adapter, no loop: F_r^D = F_r^R (torch only)
+    use_dgfd: bool = (
+        True  # ablation switch: False = no adapter, no loop: F_r^D = F_r^R (exports an identity loop)
+    )
     # ablation switch: False = no noise adapter, x_m is Eq. 9 at m: sqrt(abar_m) F + sqrt(1 - abar_m) eps
     use_adapter: bool = True
     s2d_blocks: int = 2  # residual blocks per resolution in the teacher's S2D enhancement

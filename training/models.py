@@ -175,12 +175,13 @@ class StudentModel(_FrozenTeacherMixin):
         eps_m = torch.randn_like(f_r)
         if self.cfg.use_dgfd and w.adapter_align > 0 and isinstance(self.adapter, NoiseAdapter):
             delta = self.adapter.gate(f_r)  # (B, C, 1, 1)
-            d = delta.detach()  # the loop sees the gate as a constant; F_r^R still trains through it
-            f_d = ddim_loop(self._loop_step(), d * f_r + (1.0 - d) * eps_m, self.train_coeffs)
+            # the loop sees the gate as a constant; F_r^R still trains through it
+            f_d = ddim_loop(
+                self._loop_step(), self.adapter.mix(f_r, eps_m, delta.detach()), self.train_coeffs
+            )
             a_m = self.abar[self.cfg.diffusion.start_step]
             target = a_m.sqrt() * f_l + (1.0 - a_m).sqrt() * eps_m  # Eq. 9 at m, same eps
-            x_m = delta * f_r.detach() + (1.0 - delta) * eps_m
-            out["align"] = eps_loss(x_m, target)
+            out["align"] = eps_loss(self.adapter.mix(f_r.detach(), eps_m, delta), target)
         else:
             f_d = self.denoised(f_r, eps_m, self.train_coeffs)
         recon = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, w)

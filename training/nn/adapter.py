@@ -59,10 +59,14 @@ class NoiseAdapter(nn.Module):
         delta = torch.softmax(logits, dim=1)[:, 0]  # (B, C)
         return delta[:, :, None, None]
 
+    @staticmethod
+    def mix(f_r: Tensor, eps: Tensor, delta: Tensor) -> Tensor:
+        """Eq. 12: f_r, eps (B, C, H, W), delta (B, C, 1, 1) -> delta * f_r + (1 - delta) * eps."""
+        return delta * f_r + (1.0 - delta) * eps
+
     def forward(self, f_r: Tensor, eps: Tensor) -> Tensor:
         """f_r, eps: (B, C, H, W) -> x_m = delta * f_r + (1 - delta) * eps, (B, C, H, W)."""
-        delta = self.gate(f_r)
-        return delta * f_r + (1.0 - delta) * eps
+        return self.mix(f_r, eps, self.gate(f_r))
 
 
 class ForwardNoising(nn.Module):
