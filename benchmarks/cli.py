@@ -5,7 +5,7 @@ from __future__ import annotations
 import click
 
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
-from msdnet.benchmarks.latency_cli import latency_command
+from msdnet.benchmarks.latency.cli import latency_command
 from msdnet.benchmarks.stages import stages_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
 

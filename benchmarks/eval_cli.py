@@ -2,9 +2,9 @@
 
 - ``quality``: raw radar, every ``--model`` (artifact folder, onnxruntime), every
   ``--checkpoint`` (torch) and every ``--ablation NAME=DIR`` scored on the same frames of a
-  dataset split against the preprocessed LiDAR (``benchmarks.quality``).
+  dataset split against the preprocessed LiDAR (``benchmarks.quality.suite``).
 - ``odometry`` / ``place``: the same methods plus LiDAR over simulated sequences
-  (``benchmarks.downstream``).
+  (``benchmarks.downstream.suite``).
 
 Each writes ``--out/results.json`` and ``--out/results.md``; bad input exits 2 with one line.
 """
@@ -96,7 +96,7 @@ def _methods(
 @one_line_errors
 def quality_command(**opts: Any) -> None:
     """Quality of raw radar, R2LDM, MSDNet (torch / onnxruntime) and ablations (Tables I, II)."""
-    from msdnet.benchmarks.quality import run_quality
+    from msdnet.benchmarks.quality.suite import run_quality
     from msdnet.runtime.datasets import open_dataset
 
     methods, grid = _methods(opts, opts["ablations"], opts["keep_radar"])
@@ -135,7 +135,7 @@ def sequence_options(func: Callable[..., Any]) -> Callable[..., Any]:
 def _downstream(
     task: str, opts: dict[str, Any], place_options: dict[str, Any] | None = None
 ) -> dict[str, Any]:
-    from msdnet.benchmarks.downstream import read_sequences, run_downstream, select_sequences
+    from msdnet.benchmarks.downstream.suite import read_sequences, run_downstream, select_sequences
     from msdnet.runtime.datasets import VodDataset
 
     seqs = select_sequences(

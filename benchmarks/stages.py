@@ -50,7 +50,7 @@ def stage_report(
     import torch
 
     from msdnet.benchmarks.metrics import score_frame
-    from msdnet.benchmarks.quality import crop_to_grid, pick_frames, xy_range
+    from msdnet.benchmarks.quality.suite import crop_to_grid, pick_frames, xy_range
     from msdnet.runtime.datasets import open_dataset
     from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.decode import decode_occupancy

@@ -4,7 +4,7 @@ Each frame's radar scan (radar frame) goes through the pipeline; the dense cloud
 the file mode writes it (``OUT/<frame id>.<format>``, columns ``x y z confidence``), and the
 frame is scored against its LiDAR sweep the way ``msdnet-bench quality`` scores it: the LiDAR
 cropped to the grid box and the radar's field of view with its ground removed, the radar and the
-dense cloud cropped the same way (``benchmarks.quality.crop_to_grid``). The summary says how much
+dense cloud cropped the same way (``benchmarks.quality.suite.crop_to_grid``). The summary says how much
 denser and how much closer to the LiDAR the output is than the radar, and
 ``OUT/comparison.json`` keeps every frame's figures. With ``opts["keep_radar"]`` (``--keep-radar``)
 the output, and so every "dense" figure, is the model's points plus the radar points in the grid;
@@ -54,7 +54,7 @@ def compare_frame(
 ) -> FrameComparison:
     """Score radar and output (N, >=3) [x, y, z, ...] against the LiDAR (K, 3), radar frame."""
     from msdnet.benchmarks.metrics import chamfer_distance, fscore
-    from msdnet.benchmarks.quality import crop_to_grid
+    from msdnet.benchmarks.quality.suite import crop_to_grid
 
     r, d = crop_to_grid(radar, grid), crop_to_grid(dense, grid)
     ref = np.asarray(lidar, dtype=np.float32)[:, :3]

@@ -12,7 +12,7 @@ from click.testing import CliRunner
 from export_helpers import make_artifact
 
 from msdnet.benchmarks.metrics import chamfer_distance
-from msdnet.benchmarks.quality import crop_to_grid
+from msdnet.benchmarks.quality.suite import crop_to_grid
 from msdnet.runtime import Pipeline, read_cloud
 from msdnet.runtime.datasets import open_dataset
 from msdnet.runtime.infer_cli import main

@@ -13,10 +13,10 @@ from click.testing import CliRunner
 from export_helpers import make_artifact
 
 from msdnet.benchmarks.flops import graph_flops
-from msdnet.benchmarks.latency_cli import latency_command
-from msdnet.benchmarks.latency_models import given_pair, int8_artifact
-from msdnet.benchmarks.latency_quality import load_frames, quality_by_steps
-from msdnet.benchmarks.latency_timing import (
+from msdnet.benchmarks.latency.cli import latency_command
+from msdnet.benchmarks.latency.models import given_pair, int8_artifact
+from msdnet.benchmarks.latency.quality import load_frames, quality_by_steps
+from msdnet.benchmarks.latency.timing import (
     STAGES,
     calibrate_threshold,
     plain_run,

@@ -15,7 +15,7 @@ from export_helpers import (
     one_torch_thread,
 )
 
-from msdnet.benchmarks.downstream import read_sequences, select_sequences
+from msdnet.benchmarks.downstream.suite import read_sequences, select_sequences
 from msdnet.benchmarks.eval_methods import (
     Method,
     PipelineMethod,
@@ -27,7 +27,8 @@ from msdnet.benchmarks.eval_methods import (
     parse_ablation,
 )
 from msdnet.benchmarks.metrics import FrameScores, score_frame
-from msdnet.benchmarks.quality import (
+from msdnet.benchmarks.quality.report import picture_strip, write_json
+from msdnet.benchmarks.quality.suite import (
     agreement,
     crop_to_grid,
     evaluate_quality,
@@ -36,7 +37,6 @@ from msdnet.benchmarks.quality import (
     summarize,
     xy_range,
 )
-from msdnet.benchmarks.quality_report import picture_strip, write_json
 from msdnet.runtime.datasets import open_dataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GRID_PRESETS

@@ -8,7 +8,7 @@ A model trained with a weighted occupancy loss (``--occ-pos-weight w``) over-sta
 probability (odds times ``w``), so its right decoding threshold is not 0.5. For each candidate
 threshold this decodes the model's full-scale prediction of a few evenly spaced training frames
 exactly as the runtime does (``runtime.decode.decode_occupancy``), crops it like the evaluation
-does (``benchmarks.quality.crop_to_grid``) and scores it against the frame's LiDAR reference with
+does (``benchmarks.quality.suite.crop_to_grid``) and scores it against the frame's LiDAR reference with
 the paper's five headline metrics (``benchmarks.metrics.score_frame``: Chamfer distance, modified
 Hausdorff distance, F-score at 0.5 m, BEV JSD and MMD). Each metric ranks the thresholds by its
 mean over the frames; the threshold with the best mean rank wins (ties: lower Chamfer distance).
@@ -71,7 +71,7 @@ def calibrate_threshold(
     of the training range when > 0 (``make_splits``), else of the training range. The model is a
     student or R2LDM whose ``predict(radar)`` gives full-scale (occ (B, D, H, W), off (B, 3, D, H, W))."""
     from msdnet.benchmarks.metrics import score_frame
-    from msdnet.benchmarks.quality import crop_to_grid, xy_range
+    from msdnet.benchmarks.quality.suite import crop_to_grid, xy_range
 
     fit, select = make_splits(dataset, root, cfg, val_fraction=val_fraction, holdout=holdout)
     train = select if holdout > 0 else fit

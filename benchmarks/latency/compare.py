@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from msdnet.benchmarks.latency_models import int8_artifact
-from msdnet.benchmarks.latency_timing import BareStep, plain_run, summary, time_stages, torch_eager
+from msdnet.benchmarks.latency.models import int8_artifact
+from msdnet.benchmarks.latency.timing import BareStep, plain_run, summary, time_stages, torch_eager
 from msdnet.benchmarks.metrics import chamfer_distance
 from msdnet.runtime.pipeline import Pipeline
 

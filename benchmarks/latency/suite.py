@@ -28,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from msdnet.benchmarks.latency_compare import int8_comparison, torch_comparison
-from msdnet.benchmarks.latency_models import KINDS, ModelPair, given_pair, preset_config, random_pair
-from msdnet.benchmarks.latency_report import write_outputs
-from msdnet.benchmarks.latency_runs import msdnet_timings, sweep
-from msdnet.benchmarks.latency_timing import (
+from msdnet.benchmarks.latency.compare import int8_comparison, torch_comparison
+from msdnet.benchmarks.latency.models import KINDS, ModelPair, given_pair, preset_config, random_pair
+from msdnet.benchmarks.latency.report import write_outputs
+from msdnet.benchmarks.latency.runs import msdnet_timings, sweep
+from msdnet.benchmarks.latency.timing import (
     BareStep,
     StageRuns,
     calibrate_threshold,
@@ -112,7 +112,7 @@ def _inputs(cfg: LatencyConfig, pipe: Pipeline) -> tuple[Any, str, list]:
     if cfg.data is None:
         pts = synthetic_radar(pipe.columns, pipe.artifact.grid, 300, cfg.seed)
         return pts, "synthetic radar-like scan, seeded", []
-    from msdnet.benchmarks.latency_quality import load_frames
+    from msdnet.benchmarks.latency.quality import load_frames
 
     frames = load_frames(cfg.data, str(cfg.dataset), cfg.frames, pipe)
     return frames[0][1], f"{cfg.dataset} frame {frames[0][0]}", frames
@@ -206,7 +206,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             )
         quality = []
         if frames:
-            from msdnet.benchmarks.latency_quality import quality_by_steps
+            from msdnet.benchmarks.latency.quality import quality_by_steps
 
             quality = quality_by_steps(msd, frames, TABLE3_STEPS, thr["msdnet"], cfg.seed)
     stages, r2_stages = runs.summaries(), r2.summaries()

@@ -25,6 +25,7 @@ from tqdm import tqdm
 
 from msdnet.benchmarks.eval_methods import Method, primary
 from msdnet.benchmarks.metrics import FSCORE_THRESHOLDS, FrameScores, score_frame
+from msdnet.benchmarks.quality.columns import FSCORE_KEYS, PANEL_COLOURS
 from msdnet.runtime.datasets import FrameDataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
@@ -32,7 +33,6 @@ from msdnet.runtime.io import atomic_output, write_cloud
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.preprocess import crop_mask, preprocess_frame
 
-FSCORE_KEYS = tuple(f"fscore@{t:g}" for t in FSCORE_THRESHOLDS)  # "fscore@0.05", ...
 # summary metrics, in table order: name -> whether lower is better
 METRICS: dict[str, bool] = {
     "cd": True,
@@ -227,7 +227,6 @@ def write_save_index(save: Path, methods: list[Method], frame_ids: list[str], gr
 
 def strip_panels(run: QualityRun, fid: str, methods: list[Method]) -> list[tuple[str, np.ndarray, str]]:
     """The picture strip of one frame: radar | R2LDM | MSDNet | LiDAR (models present only)."""
-    from msdnet.benchmarks.quality_report import PANEL_COLOURS
 
     clouds = run.pictures[fid]
     panels = [("4D radar", clouds[methods[0].name], PANEL_COLOURS["radar"])]
@@ -257,7 +256,7 @@ def run_quality(
     ``evaluation``: what was evaluated ({dataset, data, split}), copied into results.json.
     """
     from msdnet.benchmarks.machine import machine_info
-    from msdnet.benchmarks.quality_report import picture_strip, quality_markdown, write_json, write_text
+    from msdnet.benchmarks.quality.report import picture_strip, quality_markdown, write_json, write_text
 
     frame_ids = pick_frames(list(ds.frame_ids), max_frames)
     if not frame_ids:

@@ -8,9 +8,9 @@ one cloud per frame, cropped to the grid box and field of view. "LiDAR (full swe
 sweep, downsampled to 0.25 m voxels) checks the harness itself: its errors must be near zero.
 The true poses (``Frame.pose``, radar frame -> odom) give the ground truth.
 
-- Odometry: scan-to-scan GICP (``benchmarks.odometry.gicp_odometry``, small_gicp) per sequence;
+- Odometry: scan-to-scan GICP (``benchmarks.downstream.odometry.gicp_odometry``, small_gicp) per sequence;
   relative translation / rotation errors over all consecutive pairs of all sequences.
-- Place recognition: ScanContext Recall@K (``benchmarks.place.recall_at_k``) per sequence;
+- Place recognition: ScanContext Recall@K (``benchmarks.downstream.place.recall_at_k``) per sequence;
   pooled over sequences by query count.
 """
 
@@ -24,10 +24,15 @@ import numpy as np
 import small_gicp
 from tqdm import tqdm
 
+from msdnet.benchmarks.downstream.odometry import (
+    GicpSettings,
+    gicp_odometry,
+    relative_errors,
+    relative_from_poses,
+)
+from msdnet.benchmarks.downstream.place import ScanContextConfig, recall_at_k
 from msdnet.benchmarks.eval_methods import Method
-from msdnet.benchmarks.odometry import GicpSettings, gicp_odometry, relative_errors, relative_from_poses
-from msdnet.benchmarks.place import ScanContextConfig, recall_at_k
-from msdnet.benchmarks.quality import crop_to_grid, grid_dict
+from msdnet.benchmarks.quality.suite import crop_to_grid, grid_dict
 from msdnet.runtime.datasets import FrameDataset
 from msdnet.runtime.datasets.frame import read_json
 from msdnet.runtime.errors import MsdnetError
@@ -214,7 +219,7 @@ def run_downstream(
     exclude_recent). Returns results.json's content.
     """
     from msdnet.benchmarks.machine import machine_info
-    from msdnet.benchmarks.quality_report import odometry_markdown, place_markdown, write_json, write_text
+    from msdnet.benchmarks.quality.report import odometry_markdown, place_markdown, write_json, write_text
 
     sc = run_sequences(ds, sequences, methods, grid, seed, progress)
     if task == "odometry":

@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from msdnet.benchmarks.quality.columns import FSCORE_KEYS
 from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.io import atomic_output
 from msdnet.runtime.viz import draw_grid
@@ -39,7 +40,6 @@ PAPER_NOTE = (
     "the F-score threshold, or the JSD/MMD histogram settings, and it trains on the full VoD set; "
     "compare the margins (MSDNet vs R2LDM), not the absolute values."
 )
-PANEL_COLOURS = {"radar": "tab:red", "r2ldm": "tab:orange", "msdnet": "tab:blue", "lidar": "0.25"}
 
 
 def to_jsonable(obj: Any) -> Any:
@@ -100,8 +100,6 @@ def md_table(headers: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]
 
 
 def _quality_rows(doc: dict[str, Any]) -> list[list[str]]:
-    from msdnet.benchmarks.quality import FSCORE_KEYS
-
     rows = []
     for m in doc["methods"]:
         s = doc["summary"][m["name"]]
@@ -120,8 +118,6 @@ def _quality_rows(doc: dict[str, Any]) -> list[list[str]]:
 
 def quality_markdown(doc: dict[str, Any]) -> str:
     """results.md of ``msdnet-bench quality`` (``doc`` is results.json's content)."""
-    from msdnet.benchmarks.quality import FSCORE_KEYS
-
     ev = doc["evaluation"]
     out = [
         f"# Point-cloud quality: {ev['dataset']} / {ev['split']}, {ev['frames']} frames",

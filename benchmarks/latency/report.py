@@ -18,7 +18,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from msdnet.benchmarks.latency_models import publish_temp, write_json_atomic, write_text_atomic  # noqa: E402
+from msdnet.benchmarks.latency.models import publish_temp, write_json_atomic, write_text_atomic  # noqa: E402
 
 # MSDNet Table IV (VoD, one RTX 4090): runtime s, parameters M
 PAPER_TABLE4 = {"r2dm": (0.76, 31.1), "r2ldm": (0.96, 40.3), "msdnet": (0.10, 20.5)}

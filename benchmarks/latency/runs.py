@@ -10,7 +10,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msdnet.benchmarks.flops import graph_flops
-from msdnet.benchmarks.latency_timing import BareStep, StageRuns, time_stages
+from msdnet.benchmarks.latency.timing import BareStep, StageRuns, time_stages
 from msdnet.benchmarks.machine import measure_sgemm_gflops
 from msdnet.runtime.pipeline import Pipeline
 

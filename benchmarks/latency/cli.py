@@ -1,4 +1,4 @@
-"""``msdnet-bench latency``: the click command around :func:`msdnet.benchmarks.latency.run_latency`."""
+"""``msdnet-bench latency``: the click command around :func:`msdnet.benchmarks.latency.suite.run_latency`."""
 
 from __future__ import annotations
 
@@ -58,7 +58,7 @@ def latency_command(
     quick: bool,
 ) -> None:
     """Per-stage latency, Tables III and IV, ratios and scaling; writes results.json/.md + plots."""
-    from msdnet.benchmarks.latency import LatencyConfig, quick_config, run_latency
+    from msdnet.benchmarks.latency.suite import LatencyConfig, quick_config, run_latency
     from msdnet.runtime.session import resolve_providers
 
     resolve_providers(provider)

@@ -1,0 +1,1 @@
+"""``msdnet-bench quality``: the quality suite (``suite``), its keys (``columns``), writers (``report``)."""
