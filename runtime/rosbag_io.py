@@ -1,0 +1,297 @@
+"""``msdnet-infer BAG --topic T --out OUT_BAG``: densify the PointCloud2 messages of a ROS bag.
+
+Reads ROS 1 bags (one ``.bag`` file) and ROS 2 bags (a folder with ``metadata.yaml``, sqlite3 or
+MCAP storage) with the pure-Python ``rosbags`` library (``[ros]`` extra; no ROS install). Every
+``sensor_msgs/PointCloud2`` on topic ``T`` goes through the pipeline; the output is a ROS 2 bag
+holding every input message unchanged (ROS 1 messages re-encoded as CDR, their content
+unchanged) plus ``T/dense``: one PointCloud2 per densified message with float32 fields
+``x y z confidence`` (point_step 16, little-endian, height 1), the input message's header
+(stamp and frame_id) and bag timestamp. Storage: the input's, or ``--bag-storage``; a ROS 1
+input is written as MCAP (the ROS 2 default since Iron) unless ``--bag-storage`` says otherwise.
+
+Field mapping: each model column (manifest ``input.columns``, e.g. ``x y z rcs
+v_r_compensated``) reads the message field of the same canonical name (``RCS`` -> ``rcs``);
+``--field model_column=msg_field`` overrides one. A field missing from the first message is a
+one-line error naming the topic and the field; a later message that cannot be read or run is
+counted and reported in the summary, and the rest go on. Rows with a non-finite value in a model
+column are dropped (as the file readers drop them). The bag is written under a temporary name
+next to ``OUT_BAG`` and renamed when complete; an existing ``OUT_BAG`` is refused.
+"""
+
+from __future__ import annotations
+
+import shutil
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io import DENSE_COLUMNS, temp_name
+from msdnet.runtime.pointcloud import PointCloud, canonical_column
+
+POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
+DENSE_SUFFIX = "/dense"  # output topic = input topic + this
+STORAGES = ("sqlite3", "mcap")
+ROS1_DEFAULT_STORAGE = "mcap"  # ROS 2's default storage since Iron
+# sensor_msgs/PointField datatype -> numpy scalar type (byte order added per message)
+POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+FLOAT32 = 7
+
+
+def _rosbags() -> Any:
+    try:
+        import rosbags  # noqa: F401
+    except ImportError:
+        raise MsdnetError("--topic", "needs the rosbags package: pip install 'msdnet[ros]'") from None
+    from rosbags import highlevel, rosbag2, typesys
+
+    return highlevel, rosbag2, typesys
+
+
+def parse_field_map(specs: Sequence[str], columns: Sequence[str]) -> dict[str, str]:
+    """``("rcs=RCS_dB", ...)`` -> {model column: message field}; MsdnetError on a bad entry."""
+    mapping: dict[str, str] = {}
+    for spec in specs:
+        col, sep, field = spec.partition("=")
+        col, field = canonical_column(col), field.strip()
+        if not sep or not col or not field:
+            raise MsdnetError("--field", f"expected model_column=msg_field, got {spec!r}")
+        if col not in columns:
+            raise MsdnetError("--field", f"the model has no column {col!r} (columns: {' '.join(columns)})")
+        mapping[col] = field
+    return mapping
+
+
+def resolve_fields(msg: Any, columns: Sequence[str], mapping: dict[str, str], topic: str) -> list[Any]:
+    """The PointField of ``msg`` feeding each model column; MsdnetError naming topic and field."""
+    by_name = {f.name: f for f in msg.fields}
+    by_canon = {canonical_column(f.name): f for f in msg.fields}
+    have = " ".join(by_name) or "none"
+    picked = []
+    for col in columns:
+        field = by_name.get(mapping[col]) if col in mapping else by_canon.get(col)
+        if field is None:
+            name = mapping.get(col, col)
+            raise MsdnetError(
+                topic,
+                f"PointCloud2 has no field {name!r} for model column {col!r} (fields: {have}); "
+                f"map one with --field {col}=FIELD",
+            )
+        if field.count != 1 or field.datatype not in POINTFIELD_TYPES:
+            raise MsdnetError(topic, f"field {field.name!r}: datatype {field.datatype} count {field.count}")
+        picked.append(field)
+    return picked
+
+
+def pointcloud2_to_array(msg: Any, fields: Sequence[Any]) -> np.ndarray:
+    """PointCloud2 ``msg`` -> (N, len(fields)) float32, N = height * width, row padding skipped."""
+    order = ">" if msg.is_bigendian else "<"
+    step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
+    row = int(msg.row_step) if height > 1 else width * step
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if width * step > row or data.size < height * row:
+        raise ValueError(
+            f"data has {data.size} bytes, {height} rows of {width} x {step}-byte points need more"
+        )
+    for f in fields:
+        if f.offset + np.dtype(POINTFIELD_TYPES[f.datatype]).itemsize > step:
+            raise ValueError(f"field {f.name!r} at offset {f.offset} overruns point_step {step}")
+    dtype = np.dtype(
+        {
+            "names": [f"c{i}" for i in range(len(fields))],
+            "formats": [order + POINTFIELD_TYPES[f.datatype] for f in fields],
+            "offsets": [int(f.offset) for f in fields],
+            "itemsize": step,
+        }
+    )
+    rows = data[: height * row].reshape(height, row)[:, : width * step]
+    packed = np.ascontiguousarray(rows).view(dtype).reshape(-1)
+    out = np.empty((packed.shape[0], len(fields)), np.float32)
+    for i in range(len(fields)):
+        out[:, i] = packed[f"c{i}"]
+    return out
+
+
+def make_pointcloud2(store: Any, points: np.ndarray, names: Sequence[str], stamp: Any, frame_id: str) -> Any:
+    """(N, C) values -> PointCloud2 of ``store`` (a rosbags typestore, ROS 1 or 2) with float32
+    fields ``names`` (point_step 4 C, little-endian, height 1); ``stamp`` = (sec, nanosec)."""
+    types = store.types
+    pts = np.ascontiguousarray(points, dtype="<f4")
+    fields = [types["sensor_msgs/msg/PointField"](n, 4 * i, FLOAT32, 1) for i, n in enumerate(names)]
+    time_ = types["builtin_interfaces/msg/Time"](*stamp)
+    header_t = types["std_msgs/msg/Header"]
+    extra = {"seq": 0} if "seq" in header_t.__dataclass_fields__ else {}  # ROS 1 headers count
+    header = header_t(stamp=time_, frame_id=frame_id, **extra)
+    data = pts.reshape(-1).view(np.uint8)
+    step = 4 * len(names)
+    return types[POINTCLOUD2](header, 1, len(pts), fields, False, step, step * len(pts), data, True)
+
+
+def _storage_of(bag: Path) -> str:
+    from ruamel.yaml import YAML  # a rosbags dependency
+
+    meta = YAML(typ="safe").load((bag / "metadata.yaml").read_text())
+    return str(meta["rosbag2_bagfile_information"]["storage_identifier"])
+
+
+def _check_paths(inputs: Sequence[Path], out: Path) -> tuple[Path, bool]:
+    """-> (bag, is ROS 2); MsdnetError for anything but one readable bag and a free --out."""
+    if len(inputs) != 1:
+        raise MsdnetError(" ".join(map(str, inputs)), "--topic takes exactly one bag")
+    bag = inputs[0]
+    if bag.is_file() and bag.suffix == ".bag":
+        is2 = False
+    elif bag.is_dir() and (bag / "metadata.yaml").is_file():
+        is2 = True
+    else:
+        raise MsdnetError(bag, "not a ROS 1 bag (.bag file) or a ROS 2 bag (folder with metadata.yaml)")
+    if out.exists():
+        raise MsdnetError(out, "already exists; remove it or choose another --out (a bag is written whole)")
+    return bag, is2
+
+
+def run_bag(
+    pipe: Any,
+    inputs: Sequence[Path],
+    out: Path,
+    topic: str,
+    field_specs: Sequence[str],
+    storage: str | None,
+    opts: dict[str, Any],
+    log_frame: Callable[..., None] | None = None,
+    echo: Callable[[str], None] = print,
+) -> list[dict[str, Any]]:
+    """Densify ``topic`` of one bag into the ROS 2 bag ``out`` (module docstring); -> one row per
+    topic message as ``infer_cli`` counts files (file, points_in, points_out, seconds, notes or
+    error). ``log_frame(index, label, radar_xyz, dense_xyz, confidence, stamp_ns=...)`` is called
+    per densified message (``--rerun``)."""
+    highlevel, rosbag2, typesys = _rosbags()
+    from rosbags.convert.converter import create_connections_converters
+
+    bag, is2 = _check_paths(inputs, out)
+    mapping = parse_field_map(field_specs, pipe.columns)
+    if storage is None:
+        storage = _storage_of(bag) if is2 else ROS1_DEFAULT_STORAGE
+        if not is2:
+            echo(f"ROS 1 input: writing a ROS 2 bag in {storage} storage (--bag-storage sqlite3|mcap)")
+    if storage not in STORAGES:
+        raise MsdnetError(bag, f"storage {storage!r} cannot be written (--bag-storage {'|'.join(STORAGES)})")
+    ros2 = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
+    dense_topic = topic.rstrip("/") + DENSE_SUFFIX
+    try:
+        reader = highlevel.AnyReader([bag], default_typestore=ros2)
+        reader.open()
+    except Exception as err:
+        raise MsdnetError(bag, f"unreadable bag: {' '.join(str(err).split())[:200]}") from None
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / temp_name(out.name)  # removed by the next run's clean_stale_temps if killed
+    tmp.mkdir()
+    try:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if not conns:
+            topics = ", ".join(f"{t} ({i.msgtype})" for t, i in reader.topics.items()) or "none"
+            raise MsdnetError(bag, f"no topic {topic!r} (topics: {topics})")
+        if any(c.msgtype != POINTCLOUD2 for c in conns):
+            raise MsdnetError(topic, f"messages are {conns[0].msgtype}, not {POINTCLOUD2}")
+        if any(c.topic == dense_topic for c in reader.connections):
+            raise MsdnetError(dense_topic, "the input bag already has this output topic")
+        first = next(reader.messages(connections=conns), None)
+        if first is None:
+            raise MsdnetError(topic, "no messages on the topic")
+        resolve_fields(reader.deserialize(first[2], POINTCLOUD2), pipe.columns, mapping, topic)
+        plugin = {"sqlite3": rosbag2.StoragePlugin.SQLITE3, "mcap": rosbag2.StoragePlugin.MCAP}[storage]
+        writer = rosbag2.Writer(tmp / out.name, version=9, storage_plugin=plugin)
+        with writer:
+            connmap, convmap = create_connections_converters(reader.connections, None, reader, writer)
+            dense_conn = writer.add_connection(dense_topic, POINTCLOUD2, typestore=ros2)
+            total = sum(c.msgcount for c in conns)
+            rows: list[dict[str, Any]] = []
+            bar = tqdm(total=total, unit="msg", desc="msdnet-infer", disable=None)
+            for conn, stamp, raw in reader.messages():
+                writer.write(connmap[(conn.id, conn.owner)], stamp, convmap[conn.msgtype](raw))
+                if conn.topic != topic:
+                    continue
+                label = f"{bag}: {topic} message {len(rows)} at {stamp} ns"
+                row, dense = _run_message(pipe, reader, raw, mapping, opts, label, ros2, log_frame, len(rows))
+                if dense is not None:
+                    writer.write(dense_conn, stamp, ros2.serialize_cdr(dense, POINTCLOUD2))
+                rows.append(row)
+                bar.update()
+            bar.close()
+        (tmp / out.name).rename(out)
+    finally:
+        reader.close()
+        shutil.rmtree(tmp, ignore_errors=True)
+    return rows
+
+
+def _run_message(
+    pipe: Any,
+    reader: Any,
+    raw: bytes,
+    mapping: dict[str, str],
+    opts: dict[str, Any],
+    label: str,
+    store: Any,
+    log_frame: Callable[..., None] | None,
+    index: int,
+) -> tuple[dict[str, Any], Any]:
+    """One topic message -> (summary row, dense PointCloud2 or None); never raises."""
+    row: dict[str, Any] = {"file": label, "points_in": 0, "points_out": 0, "seconds": 0.0}
+    try:
+        start = time.perf_counter()
+        msg = reader.deserialize(raw, POINTCLOUD2)
+        values = pointcloud2_to_array(msg, resolve_fields(msg, pipe.columns, mapping, label))
+        values = values[np.isfinite(values).all(axis=1)]
+        cloud = PointCloud(values, tuple(pipe.columns), source=label)
+        row["points_in"] = len(cloud)
+        res = pipe(
+            cloud,
+            steps=opts["steps"],
+            threshold=opts["threshold"],
+            seed=opts["seed"],
+            keep_radar=opts["keep_radar"],
+        )
+        dense = np.concatenate([res.points, res.confidence[:, None]], axis=1)  # (M, 4)
+        stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+        out = make_pointcloud2(store, dense, DENSE_COLUMNS, stamp, msg.header.frame_id)
+        row.update(points_out=len(res.points), notes=list(res.notes))
+        row["seconds"] = time.perf_counter() - start
+        if log_frame is not None:
+            ns = stamp[0] * 1_000_000_000 + stamp[1]
+            log_frame(index, label, cloud.xyz, res.points, res.confidence, stamp_ns=ns)
+        return row, out
+    except MsdnetError as err:
+        row["error"] = f"{label}: {err.cause}"
+    except Exception as err:  # one bad message must not stop the bag
+        row["error"] = f"{label}: {type(err).__name__}: {' '.join(str(err).split())[:200]}"
+    return row, None
+
+
+def bag_mode(
+    artifact: Any,
+    provider: str,
+    threads: int | None,
+    inputs: Sequence[Path],
+    out: Path,
+    topic: str,
+    field_specs: Sequence[str],
+    storage: str | None,
+    rerun: Path | None,
+    opts: dict[str, Any],
+) -> list[dict[str, Any]]:
+    """``msdnet-infer --topic``: one Pipeline, :func:`run_bag`, and the ``--rerun`` recording."""
+    import click
+
+    from msdnet.runtime.pipeline import Pipeline
+    from msdnet.runtime.rerun_log import recording
+
+    _rosbags()  # the missing-extra message before anything else
+    pipe = Pipeline(artifact, provider=provider, threads=threads)
+    with recording(rerun) as log:
+        frame = None if log is None else log.frame
+        return run_bag(pipe, inputs, out, topic, field_specs, storage, opts, frame, click.echo)
