@@ -3,6 +3,11 @@
 The folder is built under a temporary name next to ``--out`` and renamed into place only when
 complete (and, with ``--verify``, only when verification passes), so ``--out`` is always either
 the previous artifact or the new one. Exit 1 when verification fails, 2 on bad input.
+Folders and files get the usual permissions (0777 / 0666 minus the umask). A killed export
+leaves its temporary folder behind; the next export into the same parent folder removes it.
+``--sign KEY`` (an ed25519 private key, PEM) writes ``manifest.sig`` (``runtime/signing``), which
+``msdnet-infer --trusted-key`` checks. The checkpoint is checked first: its preset name must be
+known and ``model.safetensors`` must load (a corrupt file is one line, whatever its hash says).
 """
 
 from __future__ import annotations
@@ -10,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import os
 import shutil
-import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -20,7 +24,8 @@ import numpy as np
 from msdnet.runtime.artifact import MANIFEST
 from msdnet.runtime.datasets import DATASET_NAMES
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.training.config import ModelConfig
+from msdnet.runtime.io import clean_stale_temps, temp_name
+from msdnet.training.config import MODEL_PRESETS, ModelConfig
 
 if TYPE_CHECKING:
     from msdnet.export.verify import VerifyReport
@@ -84,6 +89,27 @@ def publish(tmp: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def load_for_export(checkpoint: Path) -> tuple[Any, ModelConfig, Any]:
+    """(model, config, state) of ``checkpoint``; every failure is one MsdnetError: an unknown
+    preset name, weights that do not load (safetensors' own error on a corrupt file whose
+    hash in checkpoint.json was updated or removed)."""
+    from msdnet.training.checkpoint import MODEL_FILE, load_checkpoint, read_checkpoint
+
+    folder, cfg, _ = read_checkpoint(checkpoint)
+    if cfg.preset not in MODEL_PRESETS:
+        raise MsdnetError(
+            folder / "checkpoint.json",
+            f"unknown preset {cfg.preset!r} in model_config (known: {', '.join(MODEL_PRESETS)})",
+        )
+    try:
+        return load_checkpoint(checkpoint)
+    except MsdnetError:
+        raise
+    except Exception as err:  # safetensors raises its own SafetensorError; torch its own
+        cause = " ".join(str(err).split())[:200] or type(err).__name__
+        raise MsdnetError(folder / MODEL_FILE, f"cannot load weights: {cause}") from None
+
+
 class VerificationFailed(Exception):
     """``--verify`` measured errors beyond tolerance; ``report`` says which."""
 
@@ -102,11 +128,13 @@ def export_model(
     frames_source: str = "",
     seed: int = 0,
     threads: int | None = None,
+    sign_key: Path | None = None,
 ) -> tuple[dict[str, Any], VerifyReport | None]:
     """Export ``model`` (a student or R2LDM torch module) into the artifact folder ``out``.
 
     With ``frames`` ((N, C) float32 radar scans in ``cfg.radar_columns`` order) the artifact is
     verified before it is published; :class:`VerificationFailed` leaves ``out`` unchanged.
+    ``sign_key``: an ed25519 private key (PEM) that signs the final manifest (``manifest.sig``).
     Returns (manifest, verification report or None).
     """
     import torch
@@ -116,8 +144,18 @@ def export_model(
     from msdnet.export.verify import verify_artifact
 
     check_out(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    key = None
+    if sign_key is not None:
+        from msdnet.runtime.signing import load_private_key
+
+        key = load_private_key(sign_key)  # a bad key fails before any work
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        clean_stale_temps(out.parent)  # a killed export's leftovers
+        tmp = out.parent / temp_name(out.name)
+        tmp.mkdir()  # 0777 minus the umask, like any folder
+    except OSError as err:
+        raise MsdnetError(out, f"cannot create the artifact folder ({err.strerror or err})") from None
     report = None
     try:
         torch.manual_seed(seed)
@@ -130,6 +168,10 @@ def export_model(
                 raise VerificationFailed(report)
             manifest["verification"] = report.to_dict()
             write_manifest(tmp, manifest)
+        if key is not None:
+            from msdnet.runtime.signing import sign_folder
+
+            sign_folder(tmp, key, MANIFEST)
         _fsync_folder(tmp)
         publish(tmp, out)
     finally:
@@ -146,6 +188,12 @@ def export_model(
 @click.option("--frames", type=click.IntRange(min=1), default=3, show_default=True)
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise seed for --verify.")
 @click.option("--threads", type=click.IntRange(min=1), help="torch and onnxruntime threads.")
+@click.option(
+    "--sign",
+    "sign_key",
+    type=click.Path(path_type=Path),
+    help="Ed25519 private key (PEM): sign the manifest (manifest.sig) for msdnet-infer --trusted-key.",
+)
 @click.option(
     "--threshold",
     type=click.FloatRange(0.0, 1.0, min_open=True, max_open=True),
@@ -167,13 +215,12 @@ def main(
     frames: int,
     seed: int,
     threads: int | None,
+    sign_key: Path | None,
     threshold: float | None,
     calibrate: int | None,
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
     import torch
-
-    from msdnet.training.checkpoint import load_checkpoint
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -184,7 +231,11 @@ def main(
     if calibrate and (data is None or dataset is None):
         raise MsdnetError("--calibrate", "needs --data and --dataset (its training frames are used)")
     check_out(out)
-    model, cfg, state = load_checkpoint(checkpoint)
+    if sign_key is not None:
+        from msdnet.runtime.signing import load_private_key
+
+        load_private_key(sign_key)  # a bad key is refused before the export starts
+    model, cfg, state = load_for_export(checkpoint)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
     if calibrate:
@@ -195,7 +246,7 @@ def main(
     frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else (None, "")
     try:
         manifest, report = export_model(
-            model, state.kind, cfg, out, str(checkpoint), frame_list, source, seed, threads
+            model, state.kind, cfg, out, str(checkpoint), frame_list, source, seed, threads, sign_key
         )
     except VerificationFailed as failed:
         for line in failed.report.lines():

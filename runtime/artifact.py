@@ -5,7 +5,12 @@ the folder and manifest are real files (no symlinks), the manifest parses and ha
 runtime's ``FORMAT_VERSION``, the graphs listed are exactly the ones the model kind needs
 (``onnx_spec``), each is a plain file inside the folder whose size and sha256 match the
 manifest, and none keeps tensors in external files. Only then are the bytes handed to
-onnxruntime, so the file checked is the file run.
+onnxruntime, so the file checked is the file run. The grid and the diffusion schedule are
+checked here too (a ``sample_steps`` of 0 or a voxel size of 0 is the manifest's fault).
+
+With ``trusted_key`` (a PEM ed25519 public key, ``runtime/signing``) the exact manifest bytes
+parsed must carry a valid ``manifest.sig`` by that key; the sha256 entries then make every graph
+authentic, not only intact.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from msdnet.runtime import onnx_spec
-from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod
+from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod, timesteps
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.onnx_check import external_tensors
@@ -85,8 +90,9 @@ def _regular_file(path: Path, what: str) -> None:
         raise MsdnetError(path, f"{what} is missing")
 
 
-def read_manifest(root: str | Path) -> dict[str, Any]:
-    """Parse ``root/manifest.json`` and check its format version."""
+def read_manifest(root: str | Path, trusted_key: str | Path | None = None) -> dict[str, Any]:
+    """Parse ``root/manifest.json`` (its signature first, with ``trusted_key``) and check its
+    format version."""
     root = Path(root)
     if root.is_symlink():
         raise MsdnetError(root, "model folder is a symlink; refusing to follow it")
@@ -96,8 +102,13 @@ def read_manifest(root: str | Path) -> dict[str, Any]:
     _regular_file(path, "manifest")
     if path.stat().st_size > MAX_MANIFEST_BYTES:
         raise MsdnetError(path, f"manifest larger than {MAX_MANIFEST_BYTES} bytes")
+    data = path.read_bytes()
+    if trusted_key is not None:
+        from msdnet.runtime.signing import verify_bytes
+
+        verify_bytes(data, root, trusted_key)
     try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
+        manifest = json.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise MsdnetError(path, f"not valid JSON ({err})") from err
     if not isinstance(manifest, dict):
@@ -171,7 +182,11 @@ def _configs(manifest: dict[str, Any], where: Path) -> tuple[GridConfig, Diffusi
             sample_steps=int(diff_d["sample_steps"]),
         )
     except (KeyError, TypeError, ValueError) as err:
-        raise MsdnetError(where, f"grid or diffusion block is incomplete ({err})") from err
+        raise MsdnetError(where, f"grid or diffusion block is incomplete or invalid ({err})") from None
+    try:
+        timesteps(diffusion)  # the manifest's own T_m and m must make a schedule
+    except ValueError as err:
+        raise MsdnetError(where, f"diffusion block: {err}") from None
     if list(grid.shape_zyx) != list(grid_d.get("shape_zyx", [])):
         raise MsdnetError(where, f"grid shape {grid_d.get('shape_zyx')} != {list(grid.shape_zyx)}")
     stored = diff_d.get("alphas_cumprod")
@@ -182,10 +197,11 @@ def _configs(manifest: dict[str, Any], where: Path) -> tuple[GridConfig, Diffusi
     return grid, diffusion
 
 
-def load_artifact(root: str | Path) -> Artifact:
-    """Read and check a model folder (see the module docstring); graphs come back as bytes."""
+def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Artifact:
+    """Read and check a model folder (see the module docstring); graphs come back as bytes.
+    ``trusted_key``: refuse a manifest not signed by this ed25519 public key (PEM file)."""
     root = Path(root)
-    manifest = read_manifest(root)
+    manifest = read_manifest(root, trusted_key)
     where = root / MANIFEST
     kind = _need(manifest, "model_kind", where, str)
     if kind not in GRAPHS_BY_KIND:

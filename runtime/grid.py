@@ -19,6 +19,22 @@ class GridConfig:
     voxel_size: tuple[float, float, float]  # [vx, vy, vz] m
     fov_deg: float = 60.0  # half-angle of the radar's horizontal field of view, degrees
 
+    def __post_init__(self) -> None:
+        """ValueError unless the box has six finite bounds with hi > lo, the voxel sizes are
+        three finite values > 0 that cut it into at least one voxel per axis, and 0 < fov <= 180."""
+        rng = np.asarray(self.point_range, dtype=np.float64)
+        size = np.asarray(self.voxel_size, dtype=np.float64)
+        if rng.shape != (6,) or not np.all(np.isfinite(rng)) or np.any(rng[3:] <= rng[:3]):
+            raise ValueError(
+                f"point_range must be [x0 y0 z0 x1 y1 z1] with x1 > x0 etc., got {self.point_range}"
+            )
+        if size.shape != (3,) or not np.all(np.isfinite(size)) or np.any(size <= 0):
+            raise ValueError(f"voxel_size must be three finite values > 0, got {self.voxel_size}")
+        if np.any(np.round((rng[3:] - rng[:3]) / size) < 1):
+            raise ValueError(f"voxel_size {self.voxel_size} is larger than the box {self.point_range}")
+        if not 0.0 < float(self.fov_deg) <= 180.0:
+            raise ValueError(f"fov_deg must be in (0, 180], got {self.fov_deg}")
+
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
         """Voxels along x, y, z."""

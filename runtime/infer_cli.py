@@ -7,6 +7,14 @@ the others: the summary names it and the exit code is 1. Bad arguments exit 2 wi
 ``--keep-radar`` (off by default) appends the input radar points inside the grid box to every
 output, confidence 1 (``Pipeline.__call__(keep_radar=True)``); by default the output is the model's.
 
+Faults: ``--out`` must be a writable folder that holds no input (checked once, up front); a
+killed run leaves no worker process (each worker exits when its parent is gone) and the next
+run removes its temporary files; ``--skip-existing`` resumes a batch. Rows with NaN/Inf (or
+values beyond float32) are dropped and counted per file and in the summary. Same seed, same
+bytes: outputs do not depend on ``--workers`` or ``--threads`` (``--threads`` is kept as given
+in every worker; unset, each of N workers gets cores // N). ``--trusted-key PUB`` refuses a
+model whose ``manifest.sig`` is missing or not by that key (``runtime/signing``).
+
 ``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/infer_dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
 how much closer to the LiDAR the output is than the radar.
@@ -26,6 +34,7 @@ from tqdm import tqdm
 
 import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.infer_guards import check_out, clamp_workers, prepare_out, usable_cores, watch_parent
 from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_dense
 
 BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
@@ -78,21 +87,25 @@ def output_paths(files: list[Path], out: Path, fmt: str) -> list[Path]:
     return targets
 
 
-def _init_worker(model: str, provider: str, threads: int | None, opts: dict[str, Any]) -> None:
+def _init_worker(
+    model: str, provider: str, threads: int | None, opts: dict[str, Any], parent: int, key: str | None
+) -> None:
+    from msdnet.runtime.artifact import load_artifact
     from msdnet.runtime.pipeline import Pipeline
 
-    _WORKER["pipe"] = Pipeline.from_dir(model, provider=provider, threads=threads)
+    watch_parent(parent)  # exit when msdnet-infer is killed: no orphaned workers
+    _WORKER["pipe"] = Pipeline(load_artifact(model, key), provider=provider, threads=threads)
     _WORKER["opts"] = opts
 
 
 def _run_one(src: str, dst: str) -> dict[str, Any]:
     """Process one file in this process's pipeline; never raises (errors are reported)."""
     pipe, opts = _WORKER["pipe"], _WORKER["opts"]
-    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0}
+    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0, "dropped": 0}
     try:
         start = time.perf_counter()
         cloud = read_cloud(src)
-        row["points_in"] = len(cloud)
+        row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
         res = pipe(
             cloud,
             steps=opts["steps"],
@@ -106,7 +119,10 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
 
             layers = [(res.points, "#555555", "MSDNet dense", 0.5), (cloud.xyz, "#d62728", "radar", 6.0)]
             render_bev(Path(dst).with_suffix(".png"), layers, pipe.artifact.grid, Path(src).name)
-        row.update(points_out=len(res.points), notes=list(res.notes))
+        notes = list(res.notes)
+        if len(cloud) == 0 and cloud.dropped_nonfinite:  # not an "empty scan": every row was bad
+            notes = [f"all {cloud.dropped_nonfinite} rows are NaN/Inf: empty output"]
+        row.update(points_out=len(res.points), notes=notes)
         row["seconds"] = time.perf_counter() - start
     except MsdnetError as err:
         row["error"] = str(err) if err.path else f"{src}: {err}"
@@ -115,13 +131,22 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
     return row
 
 
-def _summary(rows: list[dict[str, Any]], wall: float) -> tuple[str, int]:
+def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple[str, int]:
     failed = [r for r in rows if "error" in r]
     ok = len(rows) - len(failed)
     p_in = sum(r["points_in"] for r in rows if "error" not in r)
     p_out = sum(r["points_out"] for r in rows if "error" not in r)
+    dropped = [r for r in rows if r.get("dropped")]
     per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
-    lines = [f"files: {ok} ok, {len(failed)} failed; points in {p_in}, out {p_out}; time {wall:.2f} s{per}"]
+    skip = f", {skipped} skipped (output exists)" if skipped else ""
+    drop = f" ({sum(r['dropped'] for r in dropped)} NaN/Inf rows dropped)" if dropped else ""
+    lines = [
+        f"files: {ok} ok, {len(failed)} failed{skip}; points in {p_in}{drop}, out {p_out}; "
+        f"time {wall:.2f} s{per}"
+    ]
+    lines += [
+        f"  dropped: {r['file']}: {r['dropped']} rows with NaN/Inf (or beyond float32)" for r in dropped
+    ]
     lines += [
         f"  {'note' if r['points_out'] else 'empty'}: {r['file']}: {'; '.join(r['notes'])}"
         for r in rows
@@ -138,14 +163,22 @@ def _summary(rows: list[dict[str, Any]], wall: float) -> tuple[str, int]:
 @click.option("--format", "fmt", type=click.Choice(WRITE_FORMATS), default="npy", show_default=True)
 @click.option("--steps", type=click.IntRange(min=1), help="DDIM steps [manifest T_m].")
 @click.option("--threshold", type=float, help="Occupancy threshold [manifest].")
-@click.option("--seed", type=int, default=0, show_default=True, help="Noise seed.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Noise seed.")
 @click.option("--png", is_flag=True, help="Also write a BEV picture per file.")
 @click.option(
     "--keep-radar",
     is_flag=True,
     help="Output = model points + the input radar points in the grid (confidence 1). Off: model only.",
 )
-@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option(
+    "--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Processes (<= CPU cores)."
+)
+@click.option("--skip-existing", is_flag=True, help="Skip inputs whose output exists (resume a batch).")
+@click.option(
+    "--trusted-key",
+    type=click.Path(path_type=Path),
+    help="Ed25519 public key (PEM): refuse a model not signed with it (msdnet-export --sign).",
+)
 @click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
 @click.option(
@@ -167,6 +200,8 @@ def main(
     png: bool,
     keep_radar: bool,
     workers: int,
+    skip_existing: bool,
+    trusted_key: Path | None,
     provider: str,
     threads: int | None,
     dataset: str | None,
@@ -179,7 +214,7 @@ def main(
     from msdnet.runtime.session import resolve_providers
 
     model_dir = resolve_model(model)
-    artifact = load_artifact(model_dir)  # refuse a bad model before touching any input
+    artifact = load_artifact(model_dir, trusted_key)  # refuse a bad model before any input
     resolve_providers(provider)
     if threshold is not None and not 0.0 < threshold < 1.0:
         raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
@@ -189,18 +224,26 @@ def main(
         raise MsdnetError("--steps", str(err)) from None
     opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
     opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
+    check_out(out, inputs)
     if dataset is not None:
+        if skip_existing:
+            raise MsdnetError("--skip-existing", "only applies to file mode, not --dataset")
         _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, opts)
         return
     if split is not None or max_frames is not None:
         raise MsdnetError("--split/--frames", "only apply with --dataset")
     files = collect_inputs(inputs)
     targets = output_paths(files, out, fmt)
-    out.mkdir(parents=True, exist_ok=True)
-    if threads is None and workers > 1:
-        threads = max(1, (os.cpu_count() or 1) // workers)
+    prepare_out(out)  # writable, and a killed run's temporary files removed
     start = time.perf_counter()
     jobs = [(str(s), str(d)) for s, d in zip(files, targets, strict=True)]
+    skipped = 0
+    if skip_existing:
+        done = [Path(d).is_file() and (not png or Path(d).with_suffix(".png").is_file()) for _, d in jobs]
+        jobs, skipped = [j for j, d in zip(jobs, done, strict=True) if not d], sum(done)
+    workers = clamp_workers(workers, len(jobs))
+    if threads is None and workers > 1:
+        threads = max(1, usable_cores() // workers)  # outputs do not depend on it
     bar = tqdm(total=len(jobs), unit="file", desc="msdnet-infer", disable=None)
     rows: list[dict[str, Any]] = []
     if workers == 1:
@@ -212,16 +255,21 @@ def main(
             bar.update()
     else:
         ctx = multiprocessing.get_context("spawn")  # no onnxruntime/numba threads across fork
-        initargs = (str(model_dir), provider, threads, opts)
+        key = None if trusted_key is None else str(trusted_key)
+        initargs = (str(model_dir), provider, threads, opts, os.getpid(), key)
         with ProcessPoolExecutor(workers, ctx, _init_worker, initargs) as pool:
-            futures = [pool.submit(_run_one, *job) for job in jobs]
+            futures = {pool.submit(_run_one, *job): job for job in jobs}
             for fut in as_completed(futures):
-                rows.append(fut.result())
+                try:
+                    rows.append(fut.result())
+                except Exception as err:  # a worker died (killed, out of memory) or failed to start
+                    cause = " ".join(str(err).split())[:200] or type(err).__name__
+                    rows.append({"file": futures[fut][0], "error": f"{futures[fut][0]}: worker: {cause}"})
                 bar.update()
         order = {src: i for i, (src, _) in enumerate(jobs)}
         rows.sort(key=lambda r: order[r["file"]])
     bar.close()
-    text, code = _summary(rows, time.perf_counter() - start)
+    text, code = _summary(rows, time.perf_counter() - start, skipped)
     click.echo(text)
     if code:
         raise SystemExit(code)
@@ -243,12 +291,14 @@ def _dataset_mode(
 
     if len(inputs) != 1 or not inputs[0].is_dir():
         raise MsdnetError(" ".join(map(str, inputs)), "--dataset takes exactly one dataset folder")
-    if out.resolve() == inputs[0].resolve():
-        raise MsdnetError(out, "--out equals the dataset folder; choose another --out")
+    prepare_out(out)  # writable, and a killed run's temporary files removed
     pipe = Pipeline(artifact, provider=provider, threads=threads)
-    rows = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, opts)
+    rows, failed = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, opts)
     name = "R2LDM" if artifact.kind == "r2ldm" else "MSDNet"
     if opts["keep_radar"]:
         name += "+radar"  # the scored output is the union (--keep-radar), not the model alone
     click.echo("\n".join(summary_lines(rows, name)))
     click.echo(f"wrote {len(rows)} clouds{' and pictures' if opts['png'] else ''} to {out}")
+    if failed:
+        click.echo("\n".join([f"{len(failed)} frames failed:", *(f"  FAILED {f}" for f in failed)]))
+        raise SystemExit(EXIT_SOME_FAILED)

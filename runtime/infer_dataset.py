@@ -9,6 +9,10 @@ denser and how much closer to the LiDAR the output is than the radar, and
 ``OUT/comparison.json`` keeps every frame's figures. With ``opts["keep_radar"]`` (``--keep-radar``)
 the output, and so every "dense" figure, is the model's points plus the radar points in the grid;
 ``comparison.json`` then says ``"keep_radar": true``.
+
+A frame that cannot be loaded or run (a broken file, a bad calibration) does not stop the run:
+it is reported (``failed`` in ``comparison.json``, FAILED lines in the summary, exit 1) and the
+other frames are scored. Single-scan VoD frames never need a pose file.
 """
 
 from __future__ import annotations
@@ -106,40 +110,58 @@ def run_dataset(
     split: str | None,
     max_frames: int | None,
     opts: dict[str, Any],
-) -> list[FrameComparison]:
-    """Densify every frame of ``root`` (``split``, first ``max_frames``), write clouds, compare."""
+) -> tuple[list[FrameComparison], list[str]]:
+    """Densify every frame of ``root`` (``split``, first ``max_frames``), write clouds, compare;
+    -> (scored frames, one ``"<frame>: <cause>"`` line per frame that failed)."""
     ds = open_dataset(dataset, root, split=split)
     ids = ds.frame_ids[:max_frames] if max_frames else ds.frame_ids
     if not ids:
         raise MsdnetError(root, f"no frames in split {split!r}")
-    grid = pipe.artifact.grid
     rows: list[FrameComparison] = []
+    failed: list[str] = []
     for fid in tqdm(ids, unit="frame", desc="msdnet-infer", disable=None):
-        frame = preprocess_frame(ds.load(fid), grid)
-        start = time.perf_counter()
-        res = pipe(
-            frame.radar,
-            steps=opts["steps"],
-            threshold=opts["threshold"],
-            seed=opts["seed"],
-            keep_radar=opts.get("keep_radar", False),
-        )
-        seconds = time.perf_counter() - start
-        dst = out / f"{fid}.{opts['fmt']}"
-        write_dense(dst, res.points, res.confidence, opts["fmt"])
-        if opts["png"]:
-            from msdnet.runtime.viz import render_bev
-
-            layers = [
-                (frame.lidar.xyz, "#9ecae1", "LiDAR", 0.6),
-                (res.points, "#333333", "dense", 0.5),
-                (frame.radar.xyz, "#d62728", "radar", 6.0),
-            ]
-            render_bev(dst.with_suffix(".png"), layers, grid, f"{dataset} {fid}")
-        rows.append(compare_frame(fid, frame.radar.xyz, res.points, frame.lidar.xyz, grid, seconds))
+        try:
+            rows.append(_run_frame(pipe, ds, dataset, fid, out, opts))
+        except MsdnetError as err:  # one bad frame must not stop the run
+            failed.append(f"{fid}: {err}")
+        except Exception as err:
+            failed.append(f"{fid}: {type(err).__name__}: {' '.join(str(err).split())[:200]}")
+    if not rows:
+        raise MsdnetError(root, f"every frame failed; first: {failed[0]}")
     with atomic_output(out / COMPARISON_FILE) as tmp:
         body: dict[str, Any] = {"summary": summarize(rows), "frames": [asdict(r) for r in rows]}
+        if failed:
+            body["failed"] = failed
         if opts.get("keep_radar"):
             body["keep_radar"] = True  # dense_* figures score model points + radar points
         Path(tmp).write_text(json.dumps(body, indent=1, allow_nan=True) + "\n")
-    return rows
+    return rows, failed
+
+
+def _run_frame(
+    pipe: Pipeline, ds: Any, dataset: str, fid: str, out: Path, opts: dict[str, Any]
+) -> FrameComparison:
+    """Load, densify, write and score one frame."""
+    grid = pipe.artifact.grid
+    frame = preprocess_frame(ds.load(fid), grid)
+    start = time.perf_counter()
+    res = pipe(
+        frame.radar,
+        steps=opts["steps"],
+        threshold=opts["threshold"],
+        seed=opts["seed"],
+        keep_radar=opts.get("keep_radar", False),
+    )
+    seconds = time.perf_counter() - start
+    dst = out / f"{fid}.{opts['fmt']}"
+    write_dense(dst, res.points, res.confidence, opts["fmt"])
+    if opts["png"]:
+        from msdnet.runtime.viz import render_bev
+
+        layers = [
+            (frame.lidar.xyz, "#9ecae1", "LiDAR", 0.6),
+            (res.points, "#333333", "dense", 0.5),
+            (frame.radar.xyz, "#d62728", "radar", 6.0),
+        ]
+        render_bev(dst.with_suffix(".png"), layers, grid, f"{dataset} {fid}")
+    return compare_frame(fid, frame.radar.xyz, res.points, frame.lidar.xyz, grid, seconds)

@@ -3,9 +3,18 @@
 Reading checks sizes before allocating (a ``.bin`` must be a whole number of rows; at most
 ``max_points`` rows per file), drops rows with NaN/Inf and counts them in
 ``PointCloud.dropped_nonfinite``, and turns every kind of bad input into one
-``MsdnetError(path, cause)``. Writing is atomic (temporary file in the same folder, then
-``os.replace``) and keeps column names where the format can (PCD fields, PLY properties);
-``.bin`` and plain ``.npy`` store bare float32 rows, read back with ``columns=``.
+``MsdnetError(path, cause)``. Values beyond the float32 range count as non-finite (they would
+become Inf). A PCD whose header claims more (or fewer) points than it holds is refused. An empty
+``.bin`` (what a scan with no output point writes) reads back as zero rows when its layout is
+known (``columns=``, ``kind=`` or the path).
+
+Writing is atomic (temporary file in the same folder, then ``os.replace``) and keeps column
+names where the format can (PCD fields, PLY properties); ``.bin`` and plain ``.npy`` store bare
+float32 rows, read back with ``columns=``. Temporary names are ``.msdnet-<pid>-<random>.<name>.tmp``
+cut to 255 bytes (``temp_name``); a run killed mid-write leaves one behind, and
+``clean_stale_temps`` (called by every CLI before it writes into a folder) removes those whose
+process is gone. A failed write raises ``MsdnetError`` naming the output, and says when the
+disk is full.
 
 Known ``.bin`` layouts (``kind``):
 
@@ -20,8 +29,11 @@ float32, so Astyx LiDAR ``timestamp`` (~3.7e8 us) is rounded to a multiple of 32
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
-import tempfile
+import re
+import secrets
+import shutil
 import warnings
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -67,7 +79,7 @@ def read_cloud(
         raise MsdnetError(p, f"cannot read file ({err.strerror or err})") from None
     if not p.is_file():
         raise MsdnetError(p, "not a regular file")
-    if size == 0:
+    if size == 0 and suffix != ".bin":  # an empty .bin is a cloud of zero rows
         raise MsdnetError(p, "empty file")
     cols = None if columns is None else tuple(canonical_column(c) for c in columns)
     readers = {".bin": _read_bin, ".txt": _read_txt, ".npy": _read_npy}
@@ -88,7 +100,8 @@ def _finish(path: Path, array: np.ndarray, names: tuple[str, ...]) -> PointCloud
         raise MsdnetError(path, f"got {array.shape} values for columns {' '.join(names)}")
     if len(set(names)) != len(names):
         raise MsdnetError(path, f"duplicate column names: {' '.join(names)}")
-    pts = np.ascontiguousarray(array, dtype=np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32 -> Inf, dropped below
+        pts = np.ascontiguousarray(array, dtype=np.float32)
     finite = np.isfinite(pts).all(axis=1)
     dropped = int(pts.shape[0] - finite.sum())
     if dropped:
@@ -114,6 +127,8 @@ def _read_bin(path: Path, size: int, kind: str | None, cols, max_points: int):
     if cols is None:
         kind = kind or _bin_kind_from_path(path)
         if kind is None:
+            if size == 0:
+                raise MsdnetError(path, "empty .bin (no rows) of unknown layout; pass columns= or kind=")
             fits = [k for k, c in BIN_KINDS.items() if size % (4 * len(c)) == 0]
             if len(fits) != 1:
                 raise MsdnetError(
@@ -234,7 +249,10 @@ def _read_pcd(path: Path, size: int, kind: str | None, cols, max_points: int):
         f.seek(0)
         pc = pypcd4.PointCloud.from_fileobj(f)
     names = tuple(canonical_column(n) for n in pc.fields)
-    return pc.numpy().astype(np.float64).reshape(-1, len(names)), names  # (N, C)
+    data = pc.numpy().astype(np.float64).reshape(-1, len(names))  # (N, C)
+    if data.shape[0] != meta.points:
+        raise MsdnetError(path, f"header claims {meta.points} points, the data holds {data.shape[0]}")
+    return data, names
 
 
 def _read_ply(path: Path, size: int, kind: str | None, cols, max_points: int):
@@ -251,20 +269,85 @@ def _read_ply(path: Path, size: int, kind: str | None, cols, max_points: int):
     return np.stack(fields, axis=1).reshape(len(data), len(names)), names  # (N, C)
 
 
+TEMP_PREFIX = ".msdnet-"  # every temporary file or folder msdnet writes starts with this
+_TEMP_RE = re.compile(r"^\.msdnet-(\d+)-[0-9a-f]+\..*\.tmp$")
+MAX_NAME_BYTES = 255  # file name limit of common file systems (ext4, xfs, btrfs, tmpfs)
+
+
+def temp_name(target_name: str, pid: int | None = None) -> str:
+    """``.msdnet-<pid>-<random>.<target_name>.tmp``, the target name cut so the whole name fits
+    in ``MAX_NAME_BYTES`` bytes of UTF-8 (a legal 255-byte target name still gets a legal temp)."""
+    head = f"{TEMP_PREFIX}{os.getpid() if pid is None else pid}-{secrets.token_hex(4)}."
+    room = MAX_NAME_BYTES - len(head.encode()) - len(".tmp")
+    cut = target_name.encode("utf-8")[:room].decode("utf-8", errors="ignore")
+    return f"{head}{cut}.tmp"
+
+
+def _pid_alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, belongs to someone else
+        return True
+    return True
+
+
+def clean_stale_temps(folder: str | Path) -> int:
+    """Remove msdnet temporary files/folders in ``folder`` whose writing process is gone (a
+    killed run's leftovers); -> how many were removed. Others' live temps are left alone."""
+    removed = 0
+    try:
+        entries = list(Path(folder).iterdir())
+    except OSError:
+        return 0
+    for entry in entries:
+        match = _TEMP_RE.match(entry.name)
+        if not match or _pid_alive(int(match.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
+            removed += 1
+    return removed
+
+
+def write_error(path: str | Path, err: OSError) -> MsdnetError:
+    """A failed write as one line naming ``path``; says so when the disk is full (ENOSPC, a
+    quota, or numpy's short-write message "N requested and M written")."""
+    text = " ".join(str(err).split())
+    if err.errno in (errno.ENOSPC, errno.EDQUOT) or re.search(r"\d+ requested and \d+ written", text):
+        return MsdnetError(path, "cannot write: no space left on the device (disk full)")
+    if err.errno == errno.EROFS:
+        return MsdnetError(path, "cannot write: read-only file system")
+    return MsdnetError(path, f"cannot write: {err.strerror or text or type(err).__name__}")
+
+
 @contextlib.contextmanager
 def atomic_output(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically."""
+    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically.
+
+    Any ``OSError`` (disk full, read-only, permissions) becomes one :class:`MsdnetError` naming
+    ``path``; the temporary file is removed."""
     target = Path(path)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=f".{target.name}.", suffix=".tmp")
-    os.close(fd)
+    tmp = target.parent / temp_name(target.name)
     try:
-        yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # umask applies
+    except OSError as err:
+        raise write_error(target, err) from None
+    try:
+        yield tmp
         os.replace(tmp, target)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(err, OSError):
+            raise write_error(target, err) from None
         raise
 
 

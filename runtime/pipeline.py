@@ -69,7 +69,11 @@ class Pipeline:
         self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
         self.sessions: dict[str, ort.InferenceSession] = {}
         for spec in artifact.specs:
-            sess = create_session(artifact.graphs[spec.file], spec.file, provider, threads)
+            # onnxruntime's CPU DeformConv sums in an order that depends on the thread count
+            # (7e-7 apart on sim-lite); the adapter runs once per scan (~2 ms), so it always
+            # gets one thread and the output bytes do not depend on ``threads``.
+            n = 1 if spec.file == onnx_spec.RGFD_ADAPTER.file else threads
+            sess = create_session(artifact.graphs[spec.file], spec.file, provider, n)
             names_in = tuple(i.name for i in sess.get_inputs())
             names_out = tuple(o.name for o in sess.get_outputs())
             if names_in != spec.inputs or names_out != spec.outputs:
@@ -203,7 +207,8 @@ class Pipeline:
     ) -> Result:
         """Run one scan: points (N, C) float32 (manifest columns) or a PointCloud ->
         :class:`Result` with points (M, 3) float32 [x, y, z] and confidence (M,) float32.
-        Same seed, same bytes.
+        Same seed, same bytes: for any ``threads`` and in any process, given the same artifact,
+        onnxruntime build and CPU (tested across threads 1/2 and msdnet-infer --workers 1/2).
 
         keep_radar: False (default): the model's decoded points only (M = M_model), confidence =
         occupancy. True: the model's points followed by the input radar points the model saw, i.e.

@@ -85,7 +85,7 @@ def test_output_equal_to_input_is_refused(vod_model, vod_scans, tmp_path):
     src = tmp_path / "scan.npy"
     np.save(src, read_cloud(vod_scans[0]).select(("x", "y", "z", "rcs", "v_r_compensated")).points)
     r = _infer([src, "--model", vod_model, "--out", tmp_path, "--format", "npy"])
-    assert r.exit_code == 2 and "output path equals an input path" in r.output
+    assert r.exit_code == 2 and f"--out is the folder of input {src}" in r.output
 
 
 def test_same_seed_bit_identical_files_and_workers(vod_model, vod_scans, tmp_path):

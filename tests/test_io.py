@@ -106,9 +106,13 @@ def test_bin_bad_size_empty_unknown(tmp_path):
     (tmp_path / "odd.bin").write_bytes(b"\0" * 30)
     with pytest.raises(MsdnetError, match="whole number"):
         read_cloud(tmp_path / "odd.bin", kind="vod_radar")
-    (tmp_path / "empty.bin").write_bytes(b"")
+    (tmp_path / "empty.bin").write_bytes(b"")  # what a scan with no output point writes
+    assert len(read_cloud(tmp_path / "empty.bin", kind="lidar")) == 0
+    with pytest.raises(MsdnetError, match="empty .bin .no rows. of unknown layout"):
+        read_cloud(tmp_path / "empty.bin")
+    (tmp_path / "empty.npy").write_bytes(b"")
     with pytest.raises(MsdnetError, match="empty file"):
-        read_cloud(tmp_path / "empty.bin", kind="lidar")
+        read_cloud(tmp_path / "empty.npy")
     (tmp_path / "a.xyz").write_text("1 2 3\n")
     with pytest.raises(MsdnetError, match="unknown point-cloud extension"):
         read_cloud(tmp_path / "a.xyz")
@@ -168,10 +172,6 @@ def test_bin_round_trip_any_width(tmp_path_factory, n, c, seed):
     cols = ("x", "y", "z", *(f"f{i}" for i in range(3, c)))
     cloud = PointCloud(_rows(n, c, seed), cols)
     path = write_cloud(d / "c.bin", cloud)
-    if n == 0:
-        with pytest.raises(MsdnetError, match="empty file"):
-            read_cloud(path, columns=cols)
-        return
     back = read_cloud(path, columns=cols)
     np.testing.assert_array_equal(back.points, cloud.points)
 
@@ -186,7 +186,7 @@ def test_write_is_atomic_and_replaces(tmp_path, monkeypatch):
         raise OSError("disk full")
 
     monkeypatch.setattr(np, "save", failing_save)
-    with pytest.raises(OSError, match="disk full"):
+    with pytest.raises(MsdnetError, match="c.npy: cannot write: disk full"):
         write_cloud(target, PointCloud(_rows(9, 3), ("x", "y", "z")))
     monkeypatch.undo()
     assert os.listdir(tmp_path) == ["c.npy"]  # the old file intact, no temp left

@@ -166,7 +166,9 @@ class VodDataset(FrameDataset):
     def load(self, frame_id: str) -> Frame:
         r2l = self.radar_to_lidar(frame_id)
         lidar = read_cloud(self.lidar_dir / "velodyne" / f"{frame_id}.bin", kind="lidar")
-        pose = self.pose(frame_id)
+        accumulate = self.multi_dir is None and self.radar_frames > 1
+        has_pose = self.pose_dir is not None and (self.pose_dir / f"{frame_id}.json").is_file()
+        pose = self.pose(frame_id) if accumulate or has_pose else None  # one scan needs no pose
         if self.multi_dir is not None:
             radar = read_cloud(self.multi_dir / f"{frame_id}.bin", kind="vod_radar")
         elif self.radar_frames > 1:
