@@ -7,7 +7,9 @@ order, and returns its outputs in order, so names and dynamic axes come from one
 - ``rgfd_adapter.onnx``: :class:`RgfdAdapterGraph` = noise adapter after RGFD (Eq. 12);
 - ``denoiser_step.onnx`` / ``r2ldm_step.onnx``: ``DenoiserStep`` / ``R2LDMStep`` (the DDIM update
   folded in; the runtime only feeds ``[t, abar_t, abar_prev]``);
-- ``recon_head.onnx``: the reconstruction head at full scale, packed per half-scale voxel.
+- ``recon_head.onnx``: the reconstruction head at full scale, packed per half-scale voxel;
+- ``recon_head_sparse.onnx``: :class:`SparseHeadGraph`, the coarse-to-fine head (full scale only
+  under the half-scale voxels whose occupancy passes the gate; dynamic voxel count).
 """
 
 from __future__ import annotations
@@ -72,6 +74,17 @@ class PackedHeadGraph(nn.Module):
         return self.head.packed(features)
 
 
+class SparseHeadGraph(nn.Module):
+    """``recon_head_sparse.onnx``: the coarse-to-fine head (``ReconHead.sparse``)."""
+
+    def __init__(self, head: nn.Module) -> None:
+        super().__init__()
+        self.head = head
+
+    def forward(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return self.head.sparse(features, gate)
+
+
 def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Module]]:
     """(contract, torch module) per graph of a ``student`` or ``r2ldm`` model, pipeline order."""
     if kind == "student" and not model.cfg.use_dgfd:  # ablation: same four graphs, loop = identity
@@ -80,6 +93,7 @@ def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Modul
             (onnx_spec.RGFD_ADAPTER, NoDgfdAdapterGraph(model.rgfd)),
             (onnx_spec.DENOISER_STEP, IdentityStepGraph()),
             (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
+            (onnx_spec.RECON_HEAD_SPARSE, SparseHeadGraph(model.head)),
         ]
     if kind == "student":
         return [
@@ -87,12 +101,14 @@ def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Modul
             (onnx_spec.RGFD_ADAPTER, RgfdAdapterGraph(model.rgfd, model.adapter)),
             (onnx_spec.DENOISER_STEP, model.step),
             (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
+            (onnx_spec.RECON_HEAD_SPARSE, SparseHeadGraph(model.head)),
         ]
     if kind == "r2ldm":
         return [
             (onnx_spec.ENCODER, model.encoder),
             (onnx_spec.R2LDM_STEP, model.step),
             (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
+            (onnx_spec.RECON_HEAD_SPARSE, SparseHeadGraph(model.head)),
         ]
     raise MsdnetError(None, f"cannot export a {kind!r} model (only student and r2ldm)")
 
@@ -126,6 +142,7 @@ def example_inputs(spec: GraphSpec, cfg: ModelConfig, enc: EncoderInput, seed: i
 
     row = torch.from_numpy(step_coefficients(cfg.diffusion)[0])  # (3,) [t, abar_t, abar_prev]
     scalars = {"t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}  # each (1,)
+    scalars["gate"] = torch.zeros(1)  # the sparse head keeps every voxel while tracing
     if spec is onnx_spec.ENCODER:
         return enc.tensors()
     return tuple(scalars[name] if name in scalars else bev() for name in spec.inputs)
@@ -168,5 +185,6 @@ def export_all(
     params: dict[str, int] = {}
     for spec, module in graph_modules(model, kind):
         export_graph(module, example_inputs(spec, cfg, enc), spec, folder / spec.file)
-        params[spec.file.removesuffix(".onnx")] = count_parameters(module)
+        if spec not in onnx_spec.OPTIONAL_GRAPHS:  # the sparse head's weights are recon_head's
+            params[spec.file.removesuffix(".onnx")] = count_parameters(module)
     return params, enc

@@ -8,12 +8,14 @@ Keys (read back by :mod:`msdnet.runtime.artifact`):
 - ``diffusion``: linear beta schedule parameters, ``alphas_cumprod`` (T + 1 values), the start
   step m (``start_step``; T for R2LDM, which starts from pure noise), the interval n = m / T_m
   (``interval``) and the default step count T_m (``sample_steps``);
-- ``threshold``: default occupancy threshold;
+- ``threshold``: default occupancy threshold; ``gate``: the coarse-to-fine head's half-scale
+  occupancy gate (``null``: not calibrated, the runtime decodes with the dense head);
 - ``input``: point ``columns`` in order, the per-column ``normalisation`` (shift, scale; applied
   inside ``encoder.onnx``, so the runtime feeds raw voxel means) and ``max_voxels``;
 - ``bev_shape``: (1, C, H, W) of every BEV map; ``opset``; ``versions`` (torch, onnx, ...);
 - ``parameters``: per graph and in total;
-- ``graphs``: per graph file: name, bytes, sha256, input and output names;
+- ``graphs``: per graph file: name, bytes, sha256, input and output names (the optional
+  ``onnx_spec.OPTIONAL_GRAPHS`` when the folder has them);
 - ``source``: the checkpoint exported; ``verification``: the ``--verify`` report, when run.
 """
 
@@ -50,12 +52,18 @@ def versions() -> dict[str, str]:
 
 
 def build_manifest(
-    folder: Path, kind: str, cfg: ModelConfig, params: dict[str, int], source: str
+    folder: Path,
+    kind: str,
+    cfg: ModelConfig,
+    params: dict[str, int],
+    source: str,
+    gate: float | None = None,
 ) -> dict[str, Any]:
     """The manifest of the graphs already written in ``folder`` (sizes and hashes read now)."""
     diff = runtime_diffusion(cfg, kind)
     graphs = []
-    for spec in GRAPHS_BY_KIND[kind]:
+    optional = [s for s in onnx_spec.OPTIONAL_GRAPHS if (folder / s.file).is_file()]
+    for spec in (*GRAPHS_BY_KIND[kind], *optional):
         size, digest = file_digest(folder / spec.file)
         graphs.append(
             {
@@ -89,6 +97,7 @@ def build_manifest(
             "alphas_cumprod": alphas_cumprod(diff).tolist(),
         },
         "threshold": cfg.threshold,
+        "gate": gate,
         "input": {
             "columns": list(cfg.radar_columns),
             "normalisation": {

@@ -197,6 +197,8 @@ def verify_artifact(
             else:
                 x = mod(*(torch.from_numpy(feeds[n]) for n in spec.inputs)).numpy()
         run(onnx_spec.RECON_HEAD.file, {"features": x})
+        if onnx_spec.RECON_HEAD_SPARSE.file in pipe.sessions:  # gate 0: every half-scale voxel
+            run(onnx_spec.RECON_HEAD_SPARSE.file, {"features": x, "gate": np.zeros(1, np.float32)})
         # End to end, torch side: the model's own inference path, same noise and step count.
         occ, off = model.predict(enc, noise=torch.from_numpy(noise), sample_steps=len(coeffs))
         ref_pts, _ = decode_occupancy(occ[0].numpy(), off[0].numpy(), cfg.grid, pipe.artifact.threshold)

@@ -72,6 +72,9 @@ class Artifact:
     inputs: InputSpec  # point columns and normalisation
     specs: tuple[onnx_spec.GraphSpec, ...]  # graph contracts of this kind, in pipeline order
     graphs: dict[str, bytes]  # file name -> verified ONNX bytes
+    # half-scale occupancy gate of the coarse-to-fine head (recon_head_sparse.onnx); None: the
+    # artifact has no calibrated gate and the runtime uses the dense recon_head.onnx
+    gate: float | None = None
 
 
 def _need(obj: dict[str, Any], key: str, where: Path, kind: type | tuple[type, ...]) -> Any:
@@ -209,6 +212,8 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
     specs = GRAPHS_BY_KIND[kind]
     entries = _need(manifest, "graphs", where, list)
     listed = [e.get("file") if isinstance(e, dict) else None for e in entries]
+    optional = [s for s in onnx_spec.OPTIONAL_GRAPHS if s.file in listed]
+    specs = (*specs, *optional)
     needed = [s.file for s in specs]
     if sorted(map(str, listed)) != sorted(needed):
         missing = sorted(set(needed) - set(map(str, listed)))
@@ -219,6 +224,11 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
     if not (math.isfinite(threshold) and 0.0 < threshold < 1.0):
         raise MsdnetError(where, f"threshold {threshold} not in (0, 1)")
     grid, diffusion = _configs(manifest, where)
+    gate = manifest.get("gate")
+    if gate is not None:
+        if not optional or not isinstance(gate, (int, float)) or not 0.0 <= gate < 1.0:
+            raise MsdnetError(where, f"gate {gate!r} needs recon_head_sparse.onnx and a value in [0, 1)")
+        gate = float(gate)
     return Artifact(
         root=root,
         manifest=manifest,
@@ -229,4 +239,5 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
         inputs=_input_spec(manifest, where),
         specs=specs,
         graphs=graphs,
+        gate=gate,
     )

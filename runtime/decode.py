@@ -146,6 +146,82 @@ def decode_packed(
     return _decode_packed_kernel(occ, off, shape, lo, size, np.float32(threshold))
 
 
+@njit(cache=True)
+def _decode_sparse_kernel(
+    occupancy: np.ndarray,
+    offsets: np.ndarray,
+    voxels: np.ndarray,
+    shape_zyx: np.ndarray,
+    lo: np.ndarray,
+    size: np.ndarray,
+    threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """occupancy (N, 8), offsets (N, 8, 3), voxels (N,) int64 linear half-scale indices;
+    shape_zyx (3,) int64 the dense (D, H, W) -> points (M, 3), confidence (M,) in dense
+    linear-index order (children outside the dense grid are skipped, as the dense crop does)."""
+    d, h, w = shape_zyx[0], shape_zyx[1], shape_zyx[2]
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+    n = voxels.shape[0]
+    keys = np.empty(8 * n, np.int64)  # dense linear index of each hit
+    slots = np.empty(8 * n, np.int64)  # row * 8 + child of each hit
+    m = 0
+    for r in range(n):
+        v = voxels[r]
+        x2 = v % w2
+        y2 = (v // w2) % h2
+        z2 = v // (w2 * h2)
+        for child in range(8):
+            z = 2 * z2 + (child >> 2)
+            y = 2 * y2 + ((child >> 1) & 1)
+            x = 2 * x2 + (child & 1)
+            if z < d and y < h and x < w and occupancy[r, child] > threshold:
+                keys[m] = (z * h + y) * w + x
+                slots[m] = r * 8 + child
+                m += 1
+    order = np.argsort(keys[:m])
+    points = np.empty((m, 3), np.float32)
+    confidence = np.empty(m, np.float32)
+    for t in range(m):
+        i = keys[order[t]]
+        r = slots[order[t]] // 8
+        child = slots[order[t]] % 8
+        x = i % w
+        y = (i // w) % h
+        z = i // (w * h)
+        _put_point(
+            points, t, lo, size, x, y, z, offsets[r, child, 0], offsets[r, child, 1], offsets[r, child, 2]
+        )
+        confidence[t] = occupancy[r, child]
+    return points, confidence
+
+
+def decode_sparse(
+    occupancy: np.ndarray, offsets: np.ndarray, voxels: np.ndarray, grid: GridConfig, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``decode_occupancy`` on the coarse-to-fine head's output (``onnx_spec.RECON_HEAD_SPARSE``).
+
+    occupancy: (N, 8) float32; offsets: (N, 8, 3) float32 [dx, dy, dz] metres; voxels: (N,)
+    int64 linear half-scale indices ``(z2 * H2 + y2) * W2 + x2`` with ``(D2, H2, W2) ==
+    packed_shape(grid)``. Same points and order as ``decode_packed`` on the dense head's output
+    when every half-scale voxel with a child above the threshold is among ``voxels``. Raises
+    ValueError on mismatched shapes or an index outside the half-scale grid.
+    """
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    off = np.ascontiguousarray(offsets, dtype=np.float32)
+    vox = np.ascontiguousarray(voxels, dtype=np.int64)
+    n = vox.shape[0] if vox.ndim == 1 else -1
+    if occ.shape != (n, 8) or off.shape != (n, 8, 3):
+        raise ValueError(
+            f"sparse head output must be (N, 8), (N, 8, 3), (N,); got {occ.shape}, {off.shape}, {vox.shape}"
+        )
+    half = packed_shape(grid)
+    if n and (vox.min() < 0 or vox.max() >= half[0] * half[1] * half[2]):
+        raise ValueError(f"voxel index outside the half-scale grid {half}")
+    lo, _, size, _ = grid_arrays(grid)
+    shape = np.asarray(grid.shape_zyx, dtype=np.int64)
+    return _decode_sparse_kernel(occ, off, vox, shape, lo, size, np.float32(threshold))
+
+
 def unpack_children(packed: np.ndarray, shape_zyx: tuple[int, int, int]) -> np.ndarray:
     """(8, ..., D2, H2, W2) packed -> (..., D, H, W) dense (numpy transpose, then crop)."""
     lead = packed.shape[1:-3]
@@ -166,3 +242,6 @@ def warmup() -> None:
     decode_occupancy(occ, np.zeros((3, *grid.shape_zyx), np.float32), grid, 0.5)
     half = packed_shape(grid)
     decode_packed(np.zeros((8, *half), np.float32), np.zeros((8, 3, *half), np.float32), grid, 0.5)
+    decode_sparse(
+        np.full((1, 8), 0.9, np.float32), np.zeros((1, 8, 3), np.float32), np.zeros(1, np.int64), grid, 0.5
+    )

@@ -50,6 +50,18 @@ DENOISER_STEP = GraphSpec(  # one DDIM step: x_t (1, C, H, W), t/abar_t/abar_pre
 # (full-scale voxel [2 z2 + dz, 2 y2 + dy, 2 x2 + dx]); runtime.decode.decode_packed reads it.
 RECON_HEAD = GraphSpec("recon_head.onnx", ("features",), ("occupancy", "offsets"), {})
 MSDNET_GRAPHS = (ENCODER, RGFD_ADAPTER, DENOISER_STEP, RECON_HEAD)
+# Coarse-to-fine head (optional; used with the manifest's ``gate``): F^D (1, C, H, W), gate (1,)
+# -> the full scale only under the N half-scale voxels whose own occupancy > gate: occupancy
+# (N, 8), offsets (N, 8, 3) [dx, dy, dz] (children as in RECON_HEAD), voxels (N,) int64 linear
+# half-scale index (z2 * H2 + y2) * W2 + x2, increasing; gate_occupancy (N,) the voxels' own
+# occupancy. runtime.decode.decode_sparse reads it.
+RECON_HEAD_SPARSE = GraphSpec(
+    "recon_head_sparse.onnx",
+    ("features", "gate"),
+    ("occupancy", "offsets", "voxels", "gate_occupancy"),
+    {"occupancy": {0: "N"}, "offsets": {0: "N"}, "voxels": {0: "N"}, "gate_occupancy": {0: "N"}},
+)
+OPTIONAL_GRAPHS = (RECON_HEAD_SPARSE,)  # either kind may carry these; older artifacts lack them
 
 # R2LDM baseline: same encoder and head contracts; its step takes the radar latent as condition.
 R2LDM_STEP = GraphSpec(  # x_t, cond (1, C, H, W), t/abar_t/abar_prev (1,) -> x_prev

@@ -12,7 +12,10 @@ Stages (``Result.timings`` keys, seconds):
 5. ``denoise``: the DDIM loop, any step count chosen per call; each step runs the step graph
    with the coefficients of ``runtime.ddim.step_coefficients`` (the update is inside the graph).
 6. ``head``: ``recon_head.onnx`` -> occupancy (1, 8, D2, H2, W2), offsets (1, 8, 3, D2, H2, W2),
-   full scale packed per half-scale voxel (``onnx_spec.RECON_HEAD``).
+   full scale packed per half-scale voxel (``onnx_spec.RECON_HEAD``); or, when ``Pipeline.gate``
+   is set (default: the manifest's calibrated ``gate``), the coarse-to-fine
+   ``recon_head_sparse.onnx``: the full scale only under the half-scale voxels whose occupancy
+   passes the gate (``onnx_spec.RECON_HEAD_SPARSE``), decoded by ``decode_sparse``.
 7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with
    ``keep_radar`` the input radar points inside the grid box are appended (confidence 1).
 
@@ -34,7 +37,7 @@ import onnxruntime as ort
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import Artifact, load_artifact
 from msdnet.runtime.ddim import step_coefficients
-from msdnet.runtime.decode import decode_packed, packed_shape
+from msdnet.runtime.decode import decode_packed, decode_sparse, packed_shape
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
@@ -50,7 +53,8 @@ class Result:
     points: np.ndarray  # (M, 3) float32 [x, y, z], radar frame, metres
     confidence: np.ndarray  # (M,) float32 occupancy of each point's voxel, > threshold; 1.0 keep_radar rows
     timings: dict[str, float]  # seconds per stage (module docstring) and "total"
-    # points_in, points_in_grid, voxels, steps; with keep_radar also radar_kept (the last rows)
+    # points_in, points_in_grid, voxels, steps, head_voxels (half-scale voxels decoded at full
+    # scale; all of them with the dense head); with keep_radar also radar_kept (the last rows)
     stats: dict[str, int] = field(default_factory=dict)
     notes: tuple[str, ...] = ()  # human-readable remarks, e.g. why the output is empty
 
@@ -142,12 +146,71 @@ class Pipeline:
             b.bind_ortvalue_output("occupancy", ort.OrtValue.ortvalue_from_numpy(self._occ))
             b.bind_ortvalue_output("offsets", ort.OrtValue.ortvalue_from_numpy(self._off))
             self._head_bind.append(b)
+        self._allocate_sparse_head()
         self._enc_bind = self.sessions[onnx_spec.ENCODER.file].io_binding()
         self._enc_bind.bind_ortvalue_output("bev_features", self._bev)
         if self.kind == "student":
             self._adapter_bind = self.sessions[onnx_spec.RGFD_ADAPTER.file].io_binding()
             self._adapter_bind.bind_ortvalue_input("bev_features", self._bev)
             self._adapter_bind.bind_ortvalue_output("x_start", self._x[0])
+
+    def _allocate_sparse_head(self) -> None:
+        """Bindings of ``recon_head_sparse.onnx`` (when the artifact has it): features from either
+        loop buffer; the gate and the outputs (dynamic N) are bound per call."""
+        # half-scale occupancy gate; None: decode with the dense recon_head.onnx (the reference)
+        self.gate: float | None = self.artifact.gate
+        self._gate = np.zeros(1, np.float32)
+        self._sparse_bind = []
+        self._last_final: int | None = None  # loop buffer of the last sparse head call
+        sess = self.sessions.get(onnx_spec.RECON_HEAD_SPARSE.file)
+        if sess is None:
+            return
+        for src in (0, 1):
+            b = sess.io_binding()
+            b.bind_ortvalue_input("features", self._x[src])
+            self._sparse_bind.append(b)
+
+    def _head(self, final: int, thr: float) -> tuple[np.ndarray, np.ndarray, int]:
+        """Head and decode stages on loop buffer ``final`` -> (points (M, 3), confidence (M,),
+        half-scale voxels decoded at full scale)."""
+        if self.gate is None:
+            self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
+            self._timer("head")
+            pts, conf = decode_packed(self._occ[0], self._off[0], self.artifact.grid, thr)
+            return pts, conf, int(self._occ[0, 0].size)
+        if not self._sparse_bind:
+            raise MsdnetError(
+                onnx_spec.RECON_HEAD_SPARSE.file, "gate set but the artifact has no sparse head"
+            )
+        if not 0.0 <= self.gate < 1.0:
+            raise MsdnetError("gate", f"must be in [0, 1), got {self.gate}")
+        self._gate[0] = self.gate
+        self._last_final = final
+        b = self._sparse_bind[final]
+        b.bind_cpu_input("gate", self._gate)
+        b.clear_binding_outputs()  # N changes per scan: onnxruntime allocates the outputs anew
+        for name in onnx_spec.RECON_HEAD_SPARSE.outputs:
+            b.bind_output(name, "cpu")
+        self.sessions[onnx_spec.RECON_HEAD_SPARSE.file].run_with_iobinding(b)
+        occ, off, vox, _ = b.get_outputs()
+        self._timer("head")
+        pts, conf = decode_sparse(occ.numpy(), off.numpy(), vox.numpy(), self.artifact.grid, thr)
+        return pts, conf, int(vox.shape()[0])
+
+    def sparse_head_outputs(self) -> dict[str, np.ndarray]:
+        """The last call's ``recon_head_sparse.onnx`` outputs as numpy (``onnx_spec.RECON_HEAD_SPARSE``:
+        occupancy (N, 8), offsets (N, 8, 3), voxels (N,), gate_occupancy (N,)); with gate 0, every
+        half-scale voxel's (what ``export.gate`` calibrates on). Empty before a sparse call."""
+        b = (
+            self._sparse_bind[self._last_final]
+            if self._sparse_bind and self._last_final is not None
+            else None
+        )
+        if b is None:
+            return {}
+        return dict(
+            zip(onnx_spec.RECON_HEAD_SPARSE.outputs, (v.numpy() for v in b.get_outputs()), strict=True)
+        )
 
     # ------------------------------------------------------------------ stages
 
@@ -245,9 +308,7 @@ class Pipeline:
         self._timer("adapter")
         final = self._loop(coeffs)
         self._timer("denoise")
-        self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
-        self._timer("head")
-        out, conf = decode_packed(self._occ[0], self._off[0], self.artifact.grid, thr)
+        out, conf, stats["head_voxels"] = self._head(final, thr)
         n_model = len(out)
         if keep_radar:
             radar = pts[in_range_mask(pts, self.artifact.grid), :3]

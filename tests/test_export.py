@@ -45,7 +45,7 @@ def test_export_student_verify_on_vod(student_ckpt, vod_root, tmp_path):
     out = tmp_path / "model"
     r = _export([student_ckpt, "--out", out, "--verify", "--data", vod_root, "--dataset", "vod"])
     assert r.exit_code == 0, r.output
-    for spec in onnx_spec.MSDNET_GRAPHS:
+    for spec in (*onnx_spec.MSDNET_GRAPHS, *onnx_spec.OPTIONAL_GRAPHS):
         line = next(ln for ln in r.output.splitlines() if ln.strip().startswith(spec.file))
         assert line.rstrip().endswith("ok"), line
     assert "end to end: 3 frames x 50 steps" in r.output
@@ -63,7 +63,7 @@ def test_export_student_verify_on_vod(student_ckpt, vod_root, tmp_path):
     assert len(m["input"]["normalisation"]["scale"]) == len(cfg.radar_columns)
     assert m["parameters"]["total"] == sum(v for k, v in m["parameters"].items() if k != "total")
     assert sorted(p.name for p in out.iterdir()) == sorted(
-        ["manifest.json", *(s.file for s in onnx_spec.MSDNET_GRAPHS)]
+        ["manifest.json", *(s.file for s in (*onnx_spec.MSDNET_GRAPHS, *onnx_spec.OPTIONAL_GRAPHS))]
     )
     for g in m["graphs"]:
         assert (g["bytes"], g["sha256"]) == file_digest(out / g["file"])
@@ -81,7 +81,9 @@ def test_export_r2ldm_verify_random_frames(tmp_path):
     assert r.exit_code == 0, r.output
     assert "2 random frames" in r.output
     art = load_artifact(out)
-    assert art.kind == "r2ldm" and [s.file for s in art.specs] == [s.file for s in onnx_spec.R2LDM_GRAPHS]
+    assert art.kind == "r2ldm" and [s.file for s in art.specs] == [
+        s.file for s in (*onnx_spec.R2LDM_GRAPHS, *onnx_spec.OPTIONAL_GRAPHS)
+    ]
     cfg = tiny_config()
     assert art.diffusion.start_step == cfg.diffusion.num_train_steps  # pure noise start
     assert art.diffusion.sample_steps == cfg.r2ldm_sample_steps

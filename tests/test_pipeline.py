@@ -169,7 +169,9 @@ def test_columns(pipe, scan):
 def test_r2ldm_pipeline(tmp_path_factory, scan):
     d = make_artifact(tmp_path_factory.mktemp("r2"), "r2ldm")
     p = Pipeline.from_dir(d, threads=1)
-    assert p.kind == "r2ldm" and set(p.sessions) == {s.file for s in onnx_spec.R2LDM_GRAPHS}
+    assert p.kind == "r2ldm" and set(p.sessions) == {
+        s.file for s in (*onnx_spec.R2LDM_GRAPHS, *onnx_spec.OPTIONAL_GRAPHS)
+    }
     a, b = p(scan, steps=3, seed=1), p(scan, steps=3, seed=1)
     assert len(a.points) > 0 and a.points.tobytes() == b.points.tobytes()
     assert p(scan, steps=2, seed=1).stats["steps"] == 2

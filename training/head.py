@@ -130,6 +130,36 @@ class ReconHead(nn.Module):
         half = self.half_size_2.reshape(1, 1, 3, 1, 1, 1)
         return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half
 
+    def sparse(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Coarse-to-fine inference (``recon_head_sparse.onnx``), batch 1: the trunk to the half
+        scale as in :meth:`packed`, then the full scale only under the half-scale voxels whose
+        own occupancy (the 1/2-scale branch, Eq. 3) exceeds ``gate``, computed sparsely: gather
+        their c2 features, one matmul to their 8 children's c1 features, ReLU, one block-diagonal
+        matmul to each child's [logit, dx, dy, dz] (the same weights as ``up1`` / ``full``).
+
+        features: F^D (1, C, H8, W8); gate: (1,) float32 in [0, 1). -> occupancy (N, 8) in
+        [0, 1], offsets (N, 8, 3) metres [dx, dy, dz] (axis 1 the child ``(dz * 2 + dy) * 2 + dx``
+        as in :meth:`packed`), voxels (N,) int64 linear half-scale index ``(z2 * H2 + y2) * W2 + x2``
+        in increasing order, gate_occupancy (N,) the half-scale occupancy of each kept voxel.
+        With gate 0 every voxel is kept and the children equal :meth:`packed`'s."""
+        x2 = self._trunk(features)[1]  # (1, c2, D2, H2, W2)
+        c2 = x2.shape[1]
+        half_occ = torch.sigmoid(self.occ[1](x2)).reshape(-1)  # (D2 * H2 * W2,)
+        voxels = torch.nonzero(half_occ > gate).reshape(-1)  # (N,) the rulebook of kept voxels
+        feats = x2.reshape(c2, -1).index_select(1, voxels).t()  # (N, c2)
+        w1 = self.up1.weight.reshape(self.up1.out_channels, c2)  # (8 * c1, c2)
+        h = torch.relu(feats @ w1.t() + self.up1.bias)  # (N, 8 * c1)
+        y = h @ self._full_block().t() + self.full.bias  # (N, 8 * 4)
+        y = y.reshape(-1, 8, 4)  # (N, child, [logit, dx, dy, dz])
+        half = self.half_size_2.reshape(1, 1, 3)
+        return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half, voxels, half_occ[voxels]
+
+    def _full_block(self) -> Tensor:
+        """The grouped 1x1x1 ``full`` conv as one block-diagonal (8 * 4, 8 * c1) matrix."""
+        w = self.full.weight.reshape(8, 4, 1, -1)  # (group = child, out, 1, c1)
+        eye = torch.eye(8, dtype=w.dtype, device=w.device).reshape(8, 1, 8, 1)
+        return (w * eye).reshape(32, -1)  # row child * 4 + out, column child' * c1 + c
+
     def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """Inference, full scale only, in the dense layout: F^D (B, C, H8, W8) ->
         (occupancy (B, 1, D, H, W) in [0, 1], offsets (B, 3, D, H, W) metres [dx, dy, dz])."""

@@ -51,6 +51,10 @@ class LatentHead(nn.Module):
         """As ``ReconHead.packed`` on de-normalised z (``recon_head.onnx``)."""
         return self._head.packed(self._f(z))
 
+    def sparse(self, z: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """As ``ReconHead.sparse`` on de-normalised z (``recon_head_sparse.onnx``)."""
+        return self._head.sparse(self._f(z), gate)
+
     def forward(self, z: Tensor) -> tuple[Tensor, Tensor]:
         return self._head(self._f(z))
 

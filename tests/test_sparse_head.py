@@ -1,0 +1,141 @@
+"""Coarse-to-fine head: torch sparse path, sparse decoder, exported graph in the Pipeline, gate."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from export_helpers import make_artifact, one_torch_thread, tiny_config
+
+from msdnet.export.gate import keep_all_gate
+from msdnet.export.manifest import write_manifest
+from msdnet.runtime.artifact import load_artifact
+from msdnet.runtime.decode import decode_packed, decode_sparse, packed_shape
+from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.pipeline import Pipeline
+from msdnet.training.head import ReconHead
+from msdnet.training.models import bev_shape
+
+ODD = GridConfig((0.0, 0.0, 0.0, 2.2, 1.8, 1.5), (0.2, 0.2, 0.3))  # 11 x 9 x 5: odd on every axis
+
+
+def test_sparse_children_equal_packed() -> None:
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    head = ReconHead(cfg).eval()
+    x = torch.randn(1, *bev_shape(cfg))
+    with one_torch_thread(), torch.no_grad():
+        occ, off = head.packed(x)  # (1, 8, D2, H2, W2), (1, 8, 3, D2, H2, W2)
+        s_occ, s_off, vox, g_occ = head.sparse(x, torch.zeros(1))
+        half = torch.sigmoid(head.occ[1](head._trunk(x)[1])).reshape(-1)
+        k_occ, _, k_vox, k_g = head.sparse(x, torch.tensor([0.5]))
+    assert vox.tolist() == list(range(occ[0, 0].numel()))  # gate 0 keeps every voxel, in order
+    torch.testing.assert_close(s_occ, occ.reshape(8, -1).t(), rtol=0, atol=1e-6)
+    torch.testing.assert_close(s_off, off.reshape(8, 3, -1).permute(2, 0, 1), rtol=0, atol=1e-6)
+    torch.testing.assert_close(g_occ, half)
+    assert torch.equal(k_vox, torch.nonzero(half > 0.5).reshape(-1)) and 0 < len(k_vox) < len(vox)
+    assert torch.all(k_g > 0.5) and torch.equal(k_occ, s_occ[k_vox])
+
+
+@pytest.mark.parametrize("grid", [GRID_PRESETS["tiny"], ODD], ids=["tiny", "odd"])
+def test_sparse_decoder_equals_packed_decoder(grid: GridConfig) -> None:
+    rng = np.random.default_rng(1)
+    half = packed_shape(grid)
+    occ = rng.random((8, *half), dtype=np.float32)
+    off = (rng.random((8, 3, *half), dtype=np.float32) - 0.5) * 0.1
+    ref_pts, ref_conf = decode_packed(occ, off, grid, 0.7)
+    rows_occ = occ.reshape(8, -1).T  # (N, 8)
+    rows_off = off.reshape(8, 3, -1).transpose(2, 0, 1)  # (N, 8, 3)
+    every = np.arange(rows_occ.shape[0])
+    hit = np.flatnonzero((rows_occ > 0.7).any(axis=1))  # only the voxels with an occupied child
+    for vox in (every, hit):
+        pts, conf = decode_sparse(rows_occ[vox], rows_off[vox], vox, grid, 0.7)
+        assert np.array_equal(pts, ref_pts) and np.array_equal(conf, ref_conf)
+    fewer, _ = decode_sparse(rows_occ[hit[::2]], rows_off[hit[::2]], hit[::2], grid, 0.7)
+    assert 0 < len(fewer) < len(ref_pts)
+    assert {tuple(p) for p in fewer} <= {tuple(p) for p in ref_pts}  # a gate only removes points
+    empty, _ = decode_sparse(np.zeros((0, 8)), np.zeros((0, 8, 3)), np.zeros(0, np.int64), grid, 0.5)
+    assert empty.shape == (0, 3)
+    with pytest.raises(ValueError, match="outside the half-scale grid"):
+        decode_sparse(rows_occ[:1], rows_off[:1], np.array([every.size]), grid, 0.5)
+    with pytest.raises(ValueError, match="sparse head output"):
+        decode_sparse(rows_occ[:2], rows_off[:1], every[:2], grid, 0.5)
+
+
+@pytest.fixture(scope="module")
+def sparse_pipe(tmp_path_factory: pytest.TempPathFactory) -> Pipeline:
+    return Pipeline.from_dir(make_artifact(tmp_path_factory.mktemp("sparse"), "student"), threads=1)
+
+
+def _scan(pipe: Pipeline, n: int = 200) -> np.ndarray:
+    rng = np.random.default_rng(3)
+    lo, hi = np.asarray(pipe.artifact.grid.point_range[:3]), np.asarray(pipe.artifact.grid.point_range[3:])
+    pts = np.zeros((n, len(pipe.columns)), np.float32)
+    pts[:, :3] = lo + (hi - lo) * rng.random((n, 3))
+    return pts
+
+
+def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
+    pipe, scan = sparse_pipe, _scan(sparse_pipe)
+    assert pipe.artifact.gate is None and pipe.gate is None  # not calibrated: the dense head
+    pipe.gate = 0.0
+    try:
+        occ, gate_occ = _sparse_outputs(pipe, scan)
+        # a threshold no child of the lowest-gate voxels passes (random weights: no relation between
+        # a voxel's own and its children's occupancy), so keeping every point needs fewer voxels
+        for share in (0.5, 0.2, 0.1, 0.05, 0.02):
+            thr = float(np.nextafter(occ[gate_occ <= np.quantile(gate_occ, share)].max(), np.float32(1)))
+            if (occ > thr).sum() > 0:
+                break
+        every = pipe(scan, threshold=thr, steps=4)
+        gate = keep_all_gate(occ, gate_occ, thr)
+        pipe.gate = gate
+        kept = pipe(scan, threshold=thr, steps=4)
+        pipe.gate = float(np.quantile(gate_occ, 0.7))
+        gated = pipe(scan, threshold=thr, steps=4)
+    finally:
+        pipe.gate = None
+    dense = pipe(scan, threshold=thr, steps=4)
+    assert len(dense.points) > 0 and dense.stats["head_voxels"] == every.stats["head_voxels"]
+    for res in (every, kept):
+        assert np.array_equal(res.points, dense.points) and np.array_equal(res.confidence, dense.confidence)
+    assert kept.stats["head_voxels"] < every.stats["head_voxels"]
+    assert gated.stats["head_voxels"] < kept.stats["head_voxels"] and len(gated.points) < len(dense.points)
+    assert {tuple(p) for p in gated.points} <= {tuple(p) for p in dense.points}
+
+
+def _sparse_outputs(pipe: Pipeline, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(children occupancy (N, 8), gate occupancy (N,)) of every half-scale voxel (gate 0)."""
+    pipe(scan, steps=4)
+    out = pipe.sparse_head_outputs()
+    return out["occupancy"], out["gate_occupancy"]
+
+
+def test_gate_in_the_manifest(sparse_pipe: Pipeline, tmp_path) -> None:
+    folder = tmp_path / "m"
+    shutil.copytree(sparse_pipe.artifact.root, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    write_manifest(folder, {**manifest, "gate": 0.25})
+    assert load_artifact(folder).gate == 0.25 and Pipeline.from_dir(folder).gate == 0.25
+    for bad in (1.0, -0.1, "x"):
+        write_manifest(folder, {**manifest, "gate": bad})
+        with pytest.raises(MsdnetError, match="gate"):
+            load_artifact(folder)
+    graphs = [g for g in manifest["graphs"] if g["file"] != "recon_head_sparse.onnx"]
+    write_manifest(folder, {**manifest, "graphs": graphs, "gate": None})
+    assert load_artifact(folder).gate is None  # older artifacts: no sparse graph, dense head
+    write_manifest(folder, {**manifest, "graphs": graphs, "gate": 0.2})
+    with pytest.raises(MsdnetError, match="needs recon_head_sparse.onnx"):
+        load_artifact(folder)
+
+
+def test_keep_all_gate() -> None:
+    occ = np.array([[0.9, 0, 0, 0, 0, 0, 0, 0], [0.1] * 8, [0.6] * 8], np.float32)
+    gate_occ = np.array([0.3, 0.05, 0.8], np.float32)
+    g = keep_all_gate(occ, gate_occ, 0.5)
+    assert 0.0 <= g < 0.3 and np.all((gate_occ > g) >= (occ > 0.5).any(axis=1))
+    assert keep_all_gate(occ[:0], gate_occ[:0], 0.5) == 0.0
