@@ -188,6 +188,22 @@ def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple
 )
 @click.option("--split", type=click.Choice(["train", "val"]), help="With --dataset: one split [all].")
 @click.option("--frames", "max_frames", type=click.IntRange(min=1), help="With --dataset: first N frames.")
+@click.option(
+    "--topic", help="INPUTS is one ROS 1/2 bag: densify this PointCloud2 topic (runtime/rosbag_io)."
+)
+@click.option("--field", "fields", multiple=True, metavar="COLUMN=FIELD", help="With --topic: map a field.")
+@click.option(
+    "--bag-storage", type=click.Choice(["sqlite3", "mcap"]), help="With --topic [input's; ROS 1: mcap]."
+)
+@click.option(
+    "--ray",
+    "ray_address",
+    is_flag=False,
+    flag_value="local",
+    metavar="[ADDRESS]",
+    help="Run the files on Ray actors (runtime/ray_batch): local, auto or ray://HOST:PORT.",
+)
+@click.option("--rerun", type=click.Path(path_type=Path), help="Also write a Rerun recording FILE.rrd.")
 @one_line_errors
 def main(
     inputs: tuple[Path, ...],
@@ -207,6 +223,11 @@ def main(
     dataset: str | None,
     split: str | None,
     max_frames: int | None,
+    topic: str | None,
+    fields: tuple[str, ...],
+    bag_storage: str | None,
+    ray_address: str | None,
+    rerun: Path | None,
 ) -> None:
     """Densify radar point clouds with an exported MSDNet (or R2LDM) model."""
     from msdnet.runtime.artifact import load_artifact
@@ -224,11 +245,33 @@ def main(
         raise MsdnetError("--steps", str(err)) from None
     opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
     opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
+    if topic is not None:
+        if dataset or ray_address or png or skip_existing or workers > 1:
+            raise MsdnetError(
+                "--topic", "one bag, one process: not with --dataset/--ray/--png/--skip-existing/--workers"
+            )
+        from msdnet.runtime.rosbag_io import bag_mode
+
+        start = time.perf_counter()
+        rows = bag_mode(artifact, provider, threads, inputs, out, topic, fields, bag_storage, rerun, opts)
+        text, code = _summary(rows, time.perf_counter() - start)
+        click.echo(text.replace("files:", "messages:", 1).replace(" s/file", " s/message"))
+        raise SystemExit(code)
+    if fields or bag_storage:
+        raise MsdnetError("--field/--bag-storage", "only apply with --topic")
+    if ray_address is not None and (
+        dataset or ray_address not in ("local", "auto") and Path(ray_address).exists()
+    ):
+        raise MsdnetError("--ray", f"takes a cluster address, not {ray_address!r}; put --ray after INPUTS")
     check_out(out, inputs)
     if dataset is not None:
         if skip_existing:
             raise MsdnetError("--skip-existing", "only applies to file mode, not --dataset")
         _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, opts)
+        if rerun is not None:
+            from msdnet.runtime.rerun_log import log_dataset
+
+            log_dataset(rerun, dataset, inputs[0], out, split, max_frames, fmt, artifact.grid)
         return
     if split is not None or max_frames is not None:
         raise MsdnetError("--split/--frames", "only apply with --dataset")
@@ -246,7 +289,11 @@ def main(
         threads = max(1, usable_cores() // workers)  # outputs do not depend on it
     bar = tqdm(total=len(jobs), unit="file", desc="msdnet-infer", disable=None)
     rows: list[dict[str, Any]] = []
-    if workers == 1:
+    if ray_address is not None:
+        from msdnet.runtime.ray_batch import run_ray
+
+        rows = run_ray(ray_address, artifact, provider, threads, jobs, opts, bar)
+    elif workers == 1:
         from msdnet.runtime.pipeline import Pipeline
 
         _WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), opts=opts)
@@ -269,6 +316,10 @@ def main(
         order = {src: i for i, (src, _) in enumerate(jobs)}
         rows.sort(key=lambda r: order[r["file"]])
     bar.close()
+    if rerun is not None:
+        from msdnet.runtime.rerun_log import log_files
+
+        log_files(rerun, jobs, rows)
     text, code = _summary(rows, time.perf_counter() - start, skipped)
     click.echo(text)
     if code:

@@ -14,16 +14,17 @@ cluster this machine belongs to, e.g. after ``ray start --head``) or ``ray://HOS
 Client). When this process is already connected (``ray.init`` done by the caller) that
 connection is used.
 
-A worker that dies is not retried (actor restarts and task retries are off): the run stops, the
-files that have no result are reported as failed ("not processed: ..."), and the temporary file
-a killed writer may leave next to its output is removed, so OUT holds whole files only.
+A worker that dies is not retried (actor restarts and task retries are off): the run stops, every
+file without a result is reported as failed ("no result, the Ray run stopped (ActorDiedError..."),
+and the temporary file a killed writer leaves next to its output is removed
+(``io.clean_stale_temps``), so OUT holds whole files only (``--skip-existing`` resumes).
 """
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io import clean_stale_temps
 
 DEFAULT_THREADS = 1  # intra-op threads per actor when --threads is not given
 
@@ -61,7 +63,7 @@ def _connect(address: str) -> bool:
     try:
         ray.init(
             address=None if address == "local" else address,
-            logging_level=logging.WARNING,
+            logging_level=logging.ERROR,
             log_to_driver=False,
             include_dashboard=False,
         )
@@ -70,14 +72,6 @@ def _connect(address: str) -> bool:
             "--ray", f"cannot connect to {address!r}: {' '.join(str(err).split())[:200]}"
         ) from None
     return True
-
-
-def _remove_partial(dst: str) -> None:
-    """Remove the temporary files ``io.atomic_output`` leaves next to ``dst`` when killed."""
-    target = Path(dst)
-    for tmp in target.parent.glob(f".{target.name}.*.tmp"):
-        with contextlib.suppress(OSError):
-            tmp.unlink()
 
 
 def run_ray(
@@ -98,20 +92,24 @@ def run_ray(
         ctx = ray.data.DataContext.get_current()
         ctx.enable_progress_bars = False
         ctx.print_on_execution_start = False
-        logging.getLogger("ray.data").setLevel(logging.WARNING)
+        quiet = logging.getLogger("ray.data")
+        level = quiet.level
+        quiet.setLevel(logging.CRITICAL)  # a dead actor is reported in the summary, not as a traceback
         threads = threads or DEFAULT_THREADS
         cpus = float(ray.cluster_resources().get("CPU", 1.0))
         actors = max(1, min(len(jobs), int(cpus // threads)))
         items = [{"src": s, "dst": d} for s, d in jobs]
-        ds = ray.data.from_items(items, override_num_blocks=len(items)).map_batches(
-            _InferActor,
-            batch_size=1,
-            compute=ray.data.ActorPoolStrategy(min_size=1, max_size=actors),
-            fn_constructor_args=(artifact, provider, threads, opts),
-            num_cpus=threads,
-            max_restarts=0,
-            max_task_retries=0,
-        )
+        with warnings.catch_warnings():  # max_restarts=0 is how Ray Data turns restarts off
+            warnings.filterwarnings("ignore", message=".*ray_remote_args.*deprecated")
+            ds = ray.data.from_items(items, override_num_blocks=len(items)).map_batches(
+                _InferActor,
+                batch_size=1,
+                compute=ray.data.ActorPoolStrategy(min_size=1, max_size=actors),
+                fn_constructor_args=(artifact, provider, threads, opts),
+                num_cpus=threads,
+                max_restarts=0,
+                max_task_retries=0,
+            )
         done: dict[str, dict[str, Any]] = {}
         cause = ""
         try:
@@ -121,15 +119,16 @@ def run_ray(
                 if bar is not None:
                     bar.update()
         except Exception as err:  # a dead actor, a lost node: report what did not finish
-            cause = f"{type(err).__name__}: {' '.join(str(err).split())[:160]}"
+            cause = f"{type(err).__name__}: {(str(err).strip().splitlines() or [''])[0][:160]}"
+        finally:
+            quiet.setLevel(level)
     finally:
         if started:
             ray.shutdown()
-    rows = []
-    for src, dst in jobs:
-        if src not in done:
-            _remove_partial(dst)
-            done[src] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0}
-            done[src]["error"] = f"{src}: not processed: the Ray run stopped ({cause or 'no result'})"
-        rows.append(done[src])
-    return rows
+    missing = [(src, dst) for src, dst in jobs if src not in done]
+    for folder in {Path(dst).parent for _, dst in missing}:
+        clean_stale_temps(folder)  # the temporary file of a killed writer (its process is gone)
+    for src, _ in missing:
+        done[src] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0}
+        done[src]["error"] = f"{src}: no result, the Ray run stopped ({cause or 'no reason given'})"
+    return [done[src] for src, _ in jobs]

@@ -246,9 +246,9 @@ def _run_message(
         start = time.perf_counter()
         msg = reader.deserialize(raw, POINTCLOUD2)
         values = pointcloud2_to_array(msg, resolve_fields(msg, pipe.columns, mapping, label))
-        values = values[np.isfinite(values).all(axis=1)]
-        cloud = PointCloud(values, tuple(pipe.columns), source=label)
-        row["points_in"] = len(cloud)
+        finite = np.isfinite(values).all(axis=1)
+        cloud = PointCloud(values[finite], tuple(pipe.columns), source=label)
+        row.update(points_in=len(cloud), dropped=int(len(values) - len(cloud)))
         res = pipe(
             cloud,
             steps=opts["steps"],
