@@ -295,3 +295,34 @@ def bag_mode(
     with recording(rerun) as log:
         frame = None if log is None else log.frame
         return run_bag(pipe, inputs, out, topic, field_specs, storage, opts, frame, click.echo)
+
+
+def files_to_bag(
+    inputs: str | Path | Sequence[str | Path],
+    out: str | Path,
+    topic: str = "/radar/points",
+    storage: str = "mcap",
+    frame_id: str = "radar",
+    hz: float = 10.0,
+    start_ns: int = 1_700_000_000 * 10**9,
+) -> Path:
+    """Write point-cloud files (a folder's files, sorted, or a list; any ``read_cloud`` format)
+    as a ROS 2 bag: one float32 PointCloud2 per file on ``topic``, all columns, ``hz`` apart
+    from ``start_ns`` (header stamp = bag time). For trying ``--topic`` without a recorded bag."""
+    from msdnet.runtime.io import READ_FORMATS, read_cloud
+
+    _, rosbag2, typesys = _rosbags()
+    items = [Path(inputs)] if isinstance(inputs, (str, Path)) else [Path(p) for p in inputs]
+    files = [f for p in items for f in (sorted(p.iterdir()) if p.is_dir() else [p])]
+    files = [f for f in files if f.suffix.lower() in READ_FORMATS]
+    store = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
+    plugin = {"sqlite3": rosbag2.StoragePlugin.SQLITE3, "mcap": rosbag2.StoragePlugin.MCAP}[storage]
+    out = Path(out)
+    with rosbag2.Writer(out, version=9, storage_plugin=plugin) as bag:
+        conn = bag.add_connection(topic, POINTCLOUD2, typestore=store)
+        for i, path in enumerate(files):
+            cloud = read_cloud(path)
+            ns = start_ns + round(i * 1e9 / hz)
+            msg = make_pointcloud2(store, cloud.points, cloud.columns, divmod(ns, 10**9), frame_id)
+            bag.write(conn, ns, bytes(store.serialize_cdr(msg, POINTCLOUD2)))
+    return out

@@ -21,7 +21,7 @@ from rosbags.rosbag2 import StoragePlugin  # noqa: E402
 from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from msdnet.runtime.rosbag_io import POINTCLOUD2, make_pointcloud2  # noqa: E402
+from msdnet.runtime.rosbag_io import POINTCLOUD2, files_to_bag, make_pointcloud2  # noqa: E402
 
 TOPIC = "/radar/points"
 RUN = ["--steps", "3", "--threads", "1", "--seed", "5"]
@@ -217,3 +217,15 @@ def test_bag_argument_errors(frames, tmp_path):
     assert r.exit_code == 2 and "not a ROS 1 bag (.bag file) or a ROS 2 bag" in r.output
     r = _infer(frames[0], "--out", tmp_path / "o", "--field", "rcs=a", *RUN)
     assert r.exit_code == 2 and "--field/--bag-storage: only apply with --topic" in r.output
+
+
+def test_files_to_bag_then_topic_equals_file_mode(frames, file_mode, tmp_path):
+    bag = files_to_bag(frames, tmp_path / "bag", storage="sqlite3", frame_id="radar", hz=10.0)
+    r = _infer(bag, "--topic", "/radar/points", "--out", tmp_path / "out", *RUN)
+    assert r.exit_code == 0, r.output
+    src = read_bag(bag)[1]["/radar/points"]
+    dense = read_bag(tmp_path / "out")[1]["/radar/points/dense"]
+    assert [t for t, _, _ in src] == [1_700_000_000 * 10**9 + i * 10**8 for i in range(len(frames))]
+    for (t, _, msg), (t_in, _, _), expected in zip(dense, src, file_mode, strict=True):
+        assert t == t_in and msg.header.frame_id == "radar"
+        np.testing.assert_array_equal(_dense_points(msg), expected)
