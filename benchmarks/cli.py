@@ -6,6 +6,7 @@ import click
 
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.latency.cli import latency_command
+from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
 
@@ -21,3 +22,4 @@ main.add_command(odometry_command)
 main.add_command(place_command)
 main.add_command(latency_command)
 main.add_command(stages_command)
+main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)
