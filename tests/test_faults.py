@@ -161,8 +161,10 @@ def test_out_is_a_file_or_an_input_folder(model, tmp_path):
     assert sorted(p.name for p in scan.parent.iterdir()) == ["s.ply"]
 
 
-def test_read_only_out_is_one_line_before_any_work(model, tmp_path, monkeypatch):
-    scan = _scan(tmp_path / "s.ply")
+@pytest.mark.parametrize("mode", ["files", "dataset"])
+def test_read_only_out_is_one_line_before_any_work(model, tmp_path, monkeypatch, mode):
+    scan = _scan(tmp_path / "in" / "s.ply")
+    extra = ["--dataset", "vod"] if mode == "dataset" else []  # checked before the dataset is read
     out = tmp_path / "ro"
     real_open = os.open
 
@@ -172,7 +174,7 @@ def test_read_only_out_is_one_line_before_any_work(model, tmp_path, monkeypatch)
         return real_open(path, *args, **kwargs)
 
     monkeypatch.setattr(os, "open", read_only)
-    r = _infer([scan, "--model", model, "--out", out, *FAST])
+    r = _infer([scan.parent if extra else scan, "--model", model, "--out", out, *extra, *FAST])
     assert r.exit_code == 2 and r.output == f"error: {out}: cannot write: read-only file system\n"
 
 
