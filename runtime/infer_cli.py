@@ -11,9 +11,11 @@ Faults: ``--out`` must be a writable folder that holds no input (checked once, u
 killed run leaves no worker process (each worker exits when its parent is gone) and the next
 run removes its temporary files; ``--skip-existing`` resumes a batch. Rows with NaN/Inf (or
 values beyond float32) are dropped and counted per file and in the summary. Same seed, same
-bytes: outputs do not depend on ``--workers`` or ``--threads`` (``--threads`` is kept as given
-in every worker; unset, each of N workers gets cores // N). ``--trusted-key PUB`` refuses a
-model whose ``manifest.sig`` is missing or not by that key (``runtime/signing``).
+bytes: with the cpu provider, the same model, onnxruntime build and CPU, outputs do not depend
+on ``--workers`` or ``--threads`` (``--threads`` is kept as given in every worker; unset, each of
+N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --workers 1/2.
+``--trusted-key PUB`` refuses a model whose ``manifest.sig`` is missing or not by that key
+(``runtime/signing``).
 
 ``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/infer_dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
