@@ -10,9 +10,11 @@ model's verified bytes travel to the actors with the task, so only the input and
 have to be visible to every node (a shared file system), and msdnet must be installed there.
 
 ADDRESS: ``local`` (``--ray`` alone: start a Ray instance on this machine), ``auto`` (the
-cluster this machine belongs to, e.g. after ``ray start --head``) or ``ray://HOST:10001`` (Ray
-Client). When this process is already connected (``ray.init`` done by the caller) that
-connection is used.
+cluster this machine belongs to, e.g. after ``ray start --head``), ``HOST:6379`` (a head's GCS)
+or ``ray://HOST:10001`` (Ray Client). When this process is already connected (``ray.init`` done
+by the caller) that connection is used. Ray >= 2.59 starts clusters with token authentication:
+a client then needs ``RAY_AUTH_MODE=token`` (the token comes from ``~/.ray/auth_token`` or
+``RAY_AUTH_TOKEN``).
 
 A worker that dies is not retried (actor restarts and task retries are off): the run stops, every
 file without a result is reported as failed ("no result, the Ray run stopped (ActorDiedError..."),
@@ -68,9 +70,9 @@ def _connect(address: str) -> bool:
             include_dashboard=False,
         )
     except Exception as err:  # ConnectionError, ValueError, RuntimeError... from ray.init
-        raise MsdnetError(
-            "--ray", f"cannot connect to {address!r}: {' '.join(str(err).split())[:200]}"
-        ) from None
+        cause = " ".join(str(err).split())[:200]
+        hint = "; a cluster with token authentication also needs RAY_AUTH_MODE=token here (and its token)"
+        raise MsdnetError("--ray", f"cannot connect to {address!r}: {cause}{hint}") from None
     return True
 
 

@@ -138,7 +138,8 @@ def log_dataset(
     grid: Any,
 ) -> int:
     """Dataset mode: per frame the radar, the written dense cloud and the LiDAR (radar frame),
-    prepared as ``infer_dataset.run_dataset`` prepares them; -> frames logged."""
+    prepared as ``infer_dataset.run_dataset`` prepares them (frames without an output are
+    skipped); -> frames in the dataset selection."""
     from msdnet.runtime.datasets import open_dataset
     from msdnet.runtime.preprocess import preprocess_frame
 
@@ -147,8 +148,11 @@ def log_dataset(
     with recording(path) as log:
         assert log is not None
         for i, fid in enumerate(tqdm(ids, unit="frame", desc="rerun", disable=None)):
+            dst = out / f"{fid}.{fmt}"
+            if not dst.is_file():  # a frame the run reported as failed
+                continue
             frame = preprocess_frame(ds.load(fid), grid)
-            dense = read_cloud(out / f"{fid}.{fmt}", columns=DENSE_COLUMNS)
+            dense = read_cloud(dst, columns=DENSE_COLUMNS)
             label = f"{dataset} {fid}"
             log.frame(i, label, frame.radar.xyz, dense.xyz, dense.column("confidence"), frame.lidar.xyz)
     return len(ids)

@@ -223,6 +223,8 @@ def run_bag(
                 bar.update()
             bar.close()
         (tmp / out.name).rename(out)
+    except OSError as err:  # disk full, permissions: one line, nothing left behind
+        raise MsdnetError(out, f"cannot write the bag: {err.strerror or err}") from None
     finally:
         reader.close()
         shutil.rmtree(tmp, ignore_errors=True)
