@@ -185,3 +185,24 @@ def test_bad_arguments_give_one_line(args, subject, tmp_path):
     assert r.exit_code == 2
     lines = r.output.strip().splitlines()
     assert lines[-1].startswith(f"error: {subject}: ") and "Traceback" not in r.output
+
+
+def test_quick_run_times_the_sparse_head_and_the_peers(quick):
+    out, res = quick
+    h = res["head"]
+    assert h["keep_all_equal"] is True  # keep-every-point gate: the dense head's points exactly
+    assert 0 < h["head_voxels"] < h["half_voxels"] and _finite(res["ratios"]["head_over_dense_head"])
+    assert res["models"]["msdnet"]["gate"] == h["gate"] > 0 and res["models"]["r2ldm"]["gate"] is None
+    p = res["peers"]
+    assert set(p["stages"]) == {"encoder", "rgfd_adapter", "ddim_loop", "recon_head"}
+    assert p["stages"]["recon_head"]["graph"] == "recon_head_sparse.onnx"
+    for row in p["stages"].values():
+        assert _finite(row["onnxruntime"]["median"]) and _finite(row["torch_eager"]["median"])
+        assert row["failed"]["torch_compile"] == "not run (--no-torch-compile)"  # quick: off
+    pytest.importorskip("openvino")  # the [openvino] extra, which .ci/run installs
+    assert "DeformConv" in p["stages"]["rgfd_adapter"]["failed"]["openvino"]
+    assert all(_finite(p["stages"][s]["openvino"]["median"]) for s in ("encoder", "ddim_loop", "recon_head"))
+    assert p["totals"]["openvino"]["substituted"] == ["rgfd_adapter"]
+    assert _finite(res["ratios"]["engine_over_best_peer"])
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "Peer engines per stage" in md and "Coarse-to-fine head vs the dense head" in md

@@ -31,6 +31,14 @@ from msdnet.runtime.errors import one_line_errors
     help="Random weights: threshold leaving about this many decoded points.",
 )
 @click.option("--int8/--no-int8", default=True, show_default=True, help="Measure an INT8 step graph.")
+@click.option(
+    "--peers/--no-peers", default=True, show_default=True, help="Time OpenVINO and torch per stage."
+)
+@click.option(
+    "--torch-compile/--no-torch-compile",
+    default=None,
+    help="torch.compile among the peers (compiles for minutes) [on; quick off].",
+)
 @click.option("--data", type=click.Path(path_type=Path), help="Dataset root (Table III quality).")
 @click.option("--dataset", type=click.Choice(DATASET_NAMES), help="Layout of --data.")
 @click.option("--frames", type=click.IntRange(min=1), help="Frames scored per T_m [10; quick 1].")
@@ -51,6 +59,8 @@ def latency_command(
     points_text: str | None,
     target_points: int,
     int8: bool,
+    peers: bool,
+    torch_compile: bool | None,
     data: Path | None,
     dataset: str | None,
     frames: int | None,
@@ -75,6 +85,8 @@ def latency_command(
         "point_counts": int_tuple("--points", points_text, 1),
         "target_points": target_points,
         "int8": int8,
+        "peers": peers,
+        "torch_compile": torch_compile,
         "data": data,
         "dataset": dataset,
         "frames": frames,

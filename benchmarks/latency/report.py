@@ -19,6 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from msdnet.benchmarks.latency.models import publish_temp, write_json_atomic, write_text_atomic  # noqa: E402
+from msdnet.benchmarks.latency.peer_report import goal_rows, head_section, peers_section  # noqa: E402
 
 # MSDNet Table IV (VoD, one RTX 4090): runtime s, parameters M
 PAPER_TABLE4 = {"r2dm": (0.76, 31.1), "r2ldm": (0.96, 40.3), "msdnet": (0.10, 20.5)}
@@ -58,6 +59,7 @@ def goals(res: dict[str, Any]) -> list[dict[str, Any]]:
     ]
     if res["preset"] == "paper":
         rows.append(("paper preset, s per frame", res["stages_ms"]["total"]["median"] / 1e3, "<=", 0.25))
+    rows += goal_rows(res)
     ops: dict[str, Callable[[float, float], bool]] = {
         "<=": lambda a, b: a <= b,
         ">=": lambda a, b: a >= b,
@@ -240,7 +242,7 @@ def _details(res: dict[str, Any]) -> list[str]:
 
 def markdown(res: dict[str, Any]) -> str:
     """results.md: machine, input, stages, goals, Tables III and IV, sweeps, details, INT8, notes."""
-    out = _header(res) + _tables(res) + _details(res)
+    out = _header(res) + _tables(res) + head_section(res) + peers_section(res) + _details(res)
     out += ["", "![stages](stages.png) ![steps](steps.png) ![points](points.png)", ""]
     out += [f"- {n}" for n in res.get("notes", [])]
     return "\n".join(out) + "\n"

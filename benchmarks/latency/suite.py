@@ -29,7 +29,9 @@ from typing import Any
 import numpy as np
 
 from msdnet.benchmarks.latency.compare import int8_comparison, torch_comparison
+from msdnet.benchmarks.latency.head import choose_gate, head_comparison
 from msdnet.benchmarks.latency.models import KINDS, ModelPair, given_pair, preset_config, random_pair
+from msdnet.benchmarks.latency.peers import peer_comparison
 from msdnet.benchmarks.latency.report import write_outputs
 from msdnet.benchmarks.latency.runs import msdnet_timings, sweep
 from msdnet.benchmarks.latency.timing import (
@@ -71,6 +73,9 @@ class LatencyConfig:
     dataset: str | None = None  # layout of data: vod, astyx or sim
     frames: int = 10  # frames scored per step count
     seed: int = 0  # weights, inputs and noise
+    peers: bool = True  # time the peer engines (OpenVINO, torch eager, torch.compile) per stage
+    torch_compile: bool = True  # include torch.compile among the peers (compiles for minutes)
+    peer_repeats: int = 5  # interleaved repeats per engine and stage
 
     @property
     def sweep_repeats(self) -> int:
@@ -81,6 +86,7 @@ def quick_config(out: Path, **kw: Any) -> LatencyConfig:
     """A run of a few seconds on the tiny preset (tests): few repetitions, short sweeps."""
     base: dict[str, Any] = {"preset": "tiny", "repeats": 3, "warmup": 1, "r2ldm_repeats": 1}
     base |= {"steps": (1, 50), "point_counts": (1000, 100000), "frames": 1}
+    base |= {"torch_compile": False, "peer_repeats": 2}
     return LatencyConfig(out=out, **(base | kw))
 
 
@@ -155,6 +161,8 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             p.warmup()
         msd = pipes["msdnet"]
         points, source, frames = _inputs(cfg, msd)
+        gate_note = choose_gate(msd, points, pair.msdnet.weights, _target(msd, cfg), cfg.seed)
+        pipes["r2ldm"].gate = pipes["r2ldm"].artifact.gate  # R2LDM: its manifest's (usually dense)
         thr, thr_notes = {}, {}
         for k in KINDS:
             thr[k], thr_notes[k] = _threshold(pipes[k], getattr(pair, k).weights, points, cfg)
@@ -190,6 +198,13 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
                 min(3, cfg.sweep_repeats),
                 cfg.seed,
             )
+        log("coarse-to-fine vs dense head ...")
+        head = head_comparison(msd, points, thr["msdnet"], max(5, cfg.sweep_repeats), cfg.seed)
+        peers: dict[str, Any] = {"note": "not run (--no-peers)"}
+        if cfg.peers:
+            log("peer engines per stage (OpenVINO, torch eager, torch.compile) ...")
+            model, reps = pair.msdnet.torch_model, cfg.peer_repeats
+            peers = peer_comparison(model, msd, points, cfg.threads, reps, cfg.seed, cfg.torch_compile)
         vox = voxelize_figures(grid, len(cols), msd.artifact.inputs.max_voxels, max(10, cfg.repeats))
         rss = peak_rss_mb(pair.msdnet.folder, msd.select_columns(points), cols, cfg.threads, thr["msdnet"])
         int8 = {}
@@ -224,6 +239,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
                 "threshold_note": thr_notes[k],
                 "steps": pipes[k].artifact.diffusion.sample_steps,
                 "bev_shape": list(pipes[k].bev_shape),
+                "gate": pipes[k].gate,
             }
             for k in KINDS
         },
@@ -240,7 +256,11 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "voxelize_rulebooks_numba_speedup": vox["speedup_with_rulebooks"],
             "loop_overhead_share": main["loop_overhead_share"],
             "step_flops_over_peak": main["step_graph"]["flops_over_peak"],
+            "head_over_dense_head": head.get("head_over_dense_head", float("nan")),
+            "engine_over_best_peer": peers.get("engine_over_best_peer", float("nan")),
         },
+        "head": {**head, "gate_note": gate_note},
+        "peers": peers,
         "step_graph": main["step_graph"],
         "steps_sweep": steps_rows,
         "table3": {"steps": list(TABLE3_STEPS), "quality": quality},

@@ -1,0 +1,82 @@
+"""The coarse-to-fine head against the dense reference head, in one run on one input.
+
+The gate: a given model's manifest ``gate`` (calibrated by ``export.gate``); random weights have
+no calibrated gate, so the timing input sets one the way it sets the threshold: the quantile of the
+half-scale occupancy keeping ``RANDOM_VOXEL_SHARE`` of the half-scale voxels (the shipped models'
+calibrated gates keep 2.2-4.8 %), or at least a quarter of the target point count (8 children
+each), so that the threshold chosen after it still leaves the target number of points. Sparse
+and dense calls alternate, so both see the same load.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from msdnet.benchmarks.latency.timing import Scan, summary
+from msdnet.export.gate import keep_all_gate
+from msdnet.runtime.pipeline import Pipeline
+
+RANDOM_VOXEL_SHARE = 0.05  # random weights: share of the half-scale voxels the gate keeps
+
+
+def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: int = 0) -> str:
+    """Set ``pipe.gate`` for the run (see the module docstring); -> a note saying how."""
+    if pipe.artifact.gate is not None and weights != "random":
+        pipe.gate = pipe.artifact.gate
+        return f"manifest gate {pipe.gate:.4g}"
+    if not pipe.sessions.get("recon_head_sparse.onnx"):
+        pipe.gate = None
+        return "no recon_head_sparse.onnx: dense head"
+    pipe.gate = 0.0
+    pipe(points, seed=seed)
+    occ = np.sort(pipe.sparse_head_outputs()["gate_occupancy"])[::-1]  # (N,) descending
+    keep = min(len(occ), max(int(RANDOM_VOXEL_SHARE * len(occ)), -(-target // 4)))
+    pipe.gate = float(np.nextafter(occ[keep], np.float32(0))) if keep < len(occ) else 0.0
+    return (
+        f"random weights: gate {pipe.gate:.4g}, keeping {keep} of {len(occ)} half-scale voxels "
+        f"(>= {RANDOM_VOXEL_SHARE:.0%}, >= a quarter of the target points)"
+    )
+
+
+def head_comparison(
+    pipe: Pipeline, points: Scan, threshold: float, repeats: int, seed: int = 0
+) -> dict[str, Any]:
+    """Head stage of the coarse-to-fine head (``pipe.gate``) vs the dense head, alternating calls;
+    decoded points of each, and a check: with the keep-every-point gate of this input, the sparse
+    head decodes exactly the dense head's points."""
+    gate = pipe.gate
+    if gate is None:
+        return {"note": "no gate: the pipeline runs the dense head"}
+    sparse_s, dense_s = [], []
+    try:
+        for _ in range(repeats):
+            pipe.gate = gate
+            sparse = pipe(points, threshold=threshold, seed=seed)
+            sparse_s.append(sparse.timings["head"])
+            pipe.gate = None
+            dense = pipe(points, threshold=threshold, seed=seed)
+            dense_s.append(dense.timings["head"])
+        pipe.gate = 0.0
+        pipe(points, threshold=threshold, seed=seed)
+        out = pipe.sparse_head_outputs()
+        kag = keep_all_gate(out["occupancy"], out["gate_occupancy"], threshold)
+        pipe.gate = kag
+        keep_all = pipe(points, threshold=threshold, seed=seed)
+    finally:
+        pipe.gate = gate
+    s, d = summary(sparse_s), summary(dense_s)
+    return {
+        "gate": gate,
+        "sparse": s,
+        "dense": d,
+        "head_over_dense_head": s["median"] / d["median"],
+        "head_voxels": sparse.stats["head_voxels"],
+        "half_voxels": dense.stats["head_voxels"],
+        "points_sparse": len(sparse.points),
+        "points_dense": len(dense.points),
+        "points_lost_share": 1.0 - len(sparse.points) / max(1, len(dense.points)),
+        "keep_all_gate": kag,
+        "keep_all_equal": bool(np.array_equal(keep_all.points, dense.points)),
+    }

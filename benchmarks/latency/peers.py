@@ -1,0 +1,227 @@
+"""The engines a user could pick instead of ours, on the same graphs, inputs and threads, per stage.
+
+Stages are the pipeline's graph stages: ``encoder``, ``rgfd_adapter`` (MSDNet only), ``ddim_loop``
+(every step of one frame, the recorded loop states as inputs) and ``recon_head`` (the graph the
+pipeline runs: the coarse-to-fine ``recon_head_sparse.onnx`` with its gate, or the dense head).
+Engines:
+
+- ``onnxruntime``: ours, the pipeline's own sessions (its threads), plain ``session.run``;
+- ``openvino``: the same ONNX files compiled for the CPU with ``INFERENCE_NUM_THREADS`` = threads
+  (the optional ``[openvino]`` extra); a graph it cannot load (``rgfd_adapter.onnx``: no
+  DeformConv in its ONNX front end) is reported with the reason;
+- ``torch_eager``: the torch modules the graphs were exported from (``export.graphs.graph_modules``:
+  the checkpoint's weights, or the random weights of the exported random model),
+  ``torch.set_num_threads(threads)``, ``inference_mode``;
+- ``torch_compile``: the same modules through ``torch.compile`` (compiled during the warm-up).
+
+Every repeat runs each engine once per stage, interleaved, so all see the same load. A peer's
+total is the sum of its stage medians, with onnxruntime's median standing in for a stage it cannot
+run (listed in ``substituted``). ``engine_over_best_peer`` = ours / the fastest peer, per stage and
+for the total (<= 1: ours is the fastest).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from msdnet.benchmarks.latency.timing import Scan
+from msdnet.runtime import onnx_spec
+from msdnet.runtime.pipeline import Pipeline
+from msdnet.training.batch import make_encoder_input
+
+ENGINES = ("onnxruntime", "openvino", "torch_eager", "torch_compile")
+Feeds = list[dict[str, np.ndarray]]  # one dict per graph call, contract input names -> arrays
+
+
+def stage_specs(pipe: Pipeline) -> dict[str, onnx_spec.GraphSpec]:
+    """Stage -> the graph the pipeline runs for it (the head: sparse when ``pipe.gate`` is set)."""
+    out = {"encoder": onnx_spec.ENCODER}
+    if pipe.kind == "student":
+        out["rgfd_adapter"] = onnx_spec.RGFD_ADAPTER
+    out["ddim_loop"] = onnx_spec.DENOISER_STEP if pipe.kind == "student" else onnx_spec.R2LDM_STEP
+    out["recon_head"] = onnx_spec.RECON_HEAD if pipe.gate is None else onnx_spec.RECON_HEAD_SPARSE
+    return out
+
+
+def capture_feeds(pipe: Pipeline, points: Scan, seed: int = 0) -> dict[str, Feeds]:
+    """Every graph input of one frame (the pipeline's arithmetic with plain ``session.run``)."""
+    art = pipe.artifact
+    enc = make_encoder_input([pipe.select_columns(points)], art.grid, art.inputs.max_voxels)
+    feeds: dict[str, Feeds] = {}
+    feeds["encoder"] = [{n: t.numpy() for n, t in zip(onnx_spec.ENCODER.inputs, enc.tensors(), strict=True)}]
+    (f_s,) = pipe.sessions[onnx_spec.ENCODER.file].run(None, feeds["encoder"][0])
+    noise = np.random.default_rng(seed).standard_normal(pipe.bev_shape, dtype=np.float32)
+    x = noise
+    if pipe.kind == "student":
+        feeds["rgfd_adapter"] = [{"bev_features": f_s, "noise": noise}]
+        (x,) = pipe.sessions[onnx_spec.RGFD_ADAPTER.file].run(None, feeds["rgfd_adapter"][0])
+    spec = stage_specs(pipe)["ddim_loop"]
+    feeds["ddim_loop"] = []
+    for row in pipe.coefficients():
+        feed = {"x_t": x, "cond": f_s, "t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}
+        feeds["ddim_loop"].append({k: feed[k] for k in spec.inputs})
+        (x,) = pipe.sessions[spec.file].run(None, feeds["ddim_loop"][-1])
+    head: dict[str, np.ndarray] = {"features": x}
+    if pipe.gate is not None:
+        head["gate"] = np.full(1, pipe.gate, np.float32)
+    feeds["recon_head"] = [head]
+    return feeds
+
+
+def failure_reason(err: Exception) -> str:
+    """One line: OpenVINO's conversion summary (e.g. "No conversion rule found for operations:
+    DeformConv-19") when it has one, else the first line of the message."""
+    lines = [ln.strip(" -") for ln in str(err).splitlines() if ln.strip()]
+    summary = [ln for ln in lines if ln.startswith(("No conversion rule", "Conversion is failed"))]
+    return f"{type(err).__name__}: {'; '.join(summary or lines[:1])[:200]}"
+
+
+def _onnxruntime(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds) -> Callable[[], None]:
+    sess = pipe.sessions[spec.file]
+
+    def run() -> None:
+        for f in feeds:
+            sess.run(None, f)
+
+    return run
+
+
+def _openvino(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds, threads: int) -> Callable[[], None]:
+    import openvino as ov
+
+    core = ov.Core()
+    model = core.read_model(pipe.artifact.root / spec.file)
+    compiled = core.compile_model(model, "CPU", {"INFERENCE_NUM_THREADS": threads})
+    req = compiled.create_infer_request()
+    ordered = [[f[n] for n in spec.inputs] for f in feeds]  # by position: OpenVINO may rename inputs
+
+    def run() -> None:
+        for f in ordered:
+            req.infer(f)
+
+    return run
+
+
+def _torch(module: torch.nn.Module, spec: onnx_spec.GraphSpec, feeds: Feeds) -> Callable[[], None]:
+    args = [tuple(torch.from_numpy(np.ascontiguousarray(f[n])) for n in spec.inputs) for f in feeds]
+
+    def run() -> None:
+        with torch.inference_mode():
+            for a in args:
+                module(*a)
+
+    return run
+
+
+def _modules(model: torch.nn.Module, kind: str) -> dict[str, torch.nn.Module]:
+    from msdnet.export.graphs import graph_modules
+
+    return {spec.file: mod.eval() for spec, mod in graph_modules(model, kind)}
+
+
+def peer_comparison(
+    model: torch.nn.Module | None,
+    pipe: Pipeline,
+    points: Scan,
+    threads: int,
+    repeats: int,
+    seed: int = 0,
+    compile_torch: bool = True,
+) -> dict[str, Any]:
+    """Per stage and engine: median / p90 / min ms (interleaved repeats), engines that could not run
+    a stage with the reason, totals and ``engine_over_best_peer`` (module docstring)."""
+    feeds = capture_feeds(pipe, points, seed)
+    specs = stage_specs(pipe)
+    mods = _modules(model, pipe.kind) if model is not None else {}
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    runners: dict[str, dict[str, Callable[[], None]]] = {s: {} for s in specs}
+    failed: dict[str, dict[str, str]] = {s: {} for s in specs}
+    try:
+        for stage, spec in specs.items():
+            makers: dict[str, Callable[[], Callable[[], None]]] = {
+                "onnxruntime": lambda spec=spec, stage=stage: _onnxruntime(pipe, spec, feeds[stage]),
+                "openvino": lambda spec=spec, stage=stage: _openvino(pipe, spec, feeds[stage], threads),
+            }
+            if spec.file in mods:
+                mod = mods[spec.file]
+                makers["torch_eager"] = lambda mod=mod, spec=spec, stage=stage: _torch(
+                    mod, spec, feeds[stage]
+                )
+                makers["torch_compile"] = lambda mod=mod, spec=spec, stage=stage: _torch(
+                    torch.compile(mod), spec, feeds[stage]
+                )
+            for engine in ENGINES:
+                if engine == "torch_compile" and not compile_torch:
+                    failed[stage][engine] = "not run (--no-torch-compile)"
+                    continue
+                if engine not in makers:
+                    failed[stage][engine] = "no torch weights (the manifest's source checkpoint is gone)"
+                    continue
+                try:
+                    fn = makers[engine]()
+                    fn()  # warm-up (torch.compile compiles here)
+                    fn()
+                except Exception as err:  # noqa: BLE001 - any engine failure is a result to report
+                    failed[stage][engine] = failure_reason(err)
+                    continue
+                runners[stage][engine] = fn
+        seconds: dict[str, dict[str, list[float]]] = {s: {e: [] for e in runners[s]} for s in specs}
+        for _ in range(repeats):  # interleaved: every engine sees the same load
+            for stage in specs:
+                for engine, fn in runners[stage].items():
+                    t0 = time.perf_counter()
+                    fn()
+                    seconds[stage][engine].append(time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(before)
+    return _table(specs, seconds, failed, threads, repeats)
+
+
+def _table(
+    specs: dict[str, onnx_spec.GraphSpec],
+    seconds: dict[str, dict[str, list[float]]],
+    failed: dict[str, dict[str, str]],
+    threads: int,
+    repeats: int,
+) -> dict[str, Any]:
+    from msdnet.benchmarks.latency.timing import summary
+
+    stages: dict[str, Any] = {}
+    for stage, spec in specs.items():
+        row: dict[str, Any] = {"graph": spec.file}
+        row |= {e: summary(v) for e, v in seconds[stage].items()}
+        row["failed"] = failed[stage]
+        peers = [row[e]["median"] for e in ENGINES[1:] if e in row]
+        if "onnxruntime" in row and peers:
+            row["best_peer"] = min((e for e in ENGINES[1:] if e in row), key=lambda e: row[e]["median"])
+            row["engine_over_best_peer"] = row["onnxruntime"]["median"] / min(peers)
+        stages[stage] = row
+    totals: dict[str, Any] = {}
+    for engine in ENGINES:
+        if all(engine not in stages[s] for s in specs):
+            continue
+        ms, subs = 0.0, []
+        for stage in specs:
+            if engine in stages[stage]:
+                ms += stages[stage][engine]["median"]
+            else:
+                ms += stages[stage].get("onnxruntime", {}).get("median", float("nan"))
+                subs.append(stage)
+        totals[engine] = {"median_ms": ms, "substituted": subs}
+    ours = totals.get("onnxruntime", {}).get("median_ms", float("nan"))
+    peer_totals = {e: t["median_ms"] for e, t in totals.items() if e != "onnxruntime"}
+    best = min(peer_totals, key=peer_totals.get) if peer_totals else None
+    return {
+        "threads": threads,
+        "repeats": repeats,
+        "stages": stages,
+        "totals": totals,
+        "best_peer": best,
+        "engine_over_best_peer": ours / peer_totals[best] if best else float("nan"),
+    }
