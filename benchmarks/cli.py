@@ -1,9 +1,10 @@
-"""``msdnet-bench``: the benchmark commands: voxelize, quality, odometry, place, latency, stages."""
+"""``msdnet-bench``: voxelize, quality, odometry, place, latency, stages, conditioning."""
 
 from __future__ import annotations
 
 import click
 
+from msdnet.benchmarks.conditioning import conditioning_command
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.latency.cli import latency_command
 from msdnet.benchmarks.soak import soak_command
@@ -22,4 +23,5 @@ main.add_command(odometry_command)
 main.add_command(place_command)
 main.add_command(latency_command)
 main.add_command(stages_command)
+main.add_command(conditioning_command)
 main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)

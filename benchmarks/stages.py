@@ -36,6 +36,23 @@ def _percentiles(values: np.ndarray) -> dict[str, float]:
     return {k: float(v) for k, v in zip(("min", "p5", "median", "p95", "max"), q, strict=True)}
 
 
+def split_frames(
+    run_dataset: dict[str, Any], dataset: str, root: Path, split: str, max_frames: int | None
+) -> tuple[Any, list[str]]:
+    """(reader, frame ids) of ``split``: train | val | all, or select = the run's held-out slice of
+    its training range (``run_dataset`` = the checkpoint's ``state.dataset``); ``max_frames`` of
+    them spread evenly."""
+    from msdnet.benchmarks.quality.suite import pick_frames
+    from msdnet.runtime.datasets import open_dataset
+
+    ds = open_dataset(dataset, root, split if split in ("train", "val") else None)
+    ids = list(ds.frame_ids)
+    if split == "select":  # model selection slice
+        first, last, _ = run_dataset["val_frames"]
+        ids = ids[ids.index(first) : ids.index(last) + 1]
+    return ds, pick_frames(ids, max_frames)
+
+
 def stage_report(
     checkpoint: Path,
     dataset: str,
@@ -50,8 +67,7 @@ def stage_report(
     import torch
 
     from msdnet.benchmarks.metrics import score_frame
-    from msdnet.benchmarks.quality.suite import crop_to_grid, pick_frames, xy_range
-    from msdnet.runtime.datasets import open_dataset
+    from msdnet.benchmarks.quality.suite import crop_to_grid, xy_range
     from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.decode import decode_occupancy
     from msdnet.runtime.errors import MsdnetError
@@ -66,12 +82,7 @@ def stage_report(
     if state.kind != "student":
         raise MsdnetError(checkpoint, f"is a {state.kind} checkpoint; stages reports on a student")
     thr = cfg.threshold if threshold is None else threshold
-    ds = open_dataset(dataset, root, split if split in ("train", "val") else None)
-    ids = list(ds.frame_ids)
-    if split == "select":  # the run's held-out slice of its training range (model selection)
-        first, last, _ = state.dataset["val_frames"]
-        ids = ids[ids.index(first) : ids.index(last) + 1]
-    frame_ids = pick_frames(ids, max_frames)
+    ds, frame_ids = split_frames(state.dataset, dataset, root, split, max_frames)
     rng = np.random.default_rng(seed)
     abar = alphas_cumprod(cfg.diffusion)
     big_t = cfg.diffusion.num_train_steps

@@ -319,6 +319,7 @@ def test_unet_uses_condition_and_time():
     cfg = MODEL_PRESETS["tiny"]
     torch.manual_seed(0)
     unet = R2LDMUNet(cfg).eval()
+    torch.nn.init.normal_(unet.out[2].weight, std=0.1)  # zero-initialised: eps_hat = sqrt(1 - abar) x_t
     x, c1, c2 = bev(cfg, 1, 1), bev(cfg, 1, 2), bev(cfg, 1, 3)
     t1, t2 = torch.tensor([10.0]), torch.tensor([900.0])
     with torch.no_grad():

@@ -22,7 +22,14 @@ import torch
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import collate
 from msdnet.training.checkpoint import config_diff, load_checkpoint, read_checkpoint
-from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, AugmentConfig, ModelConfig, TrainConfig
+from msdnet.training.config import (
+    MODEL_PRESETS,
+    R2LDM_LR,
+    TRAIN_PRESETS,
+    AugmentConfig,
+    ModelConfig,
+    TrainConfig,
+)
 from msdnet.training.data import DATASETS, PairDataset, config_for_dataset, make_splits
 from msdnet.training.distributed import DistInfo, init_distributed, shutdown_distributed
 from msdnet.training.loop import RunSpec, occupancy_counts, train
@@ -37,7 +44,7 @@ def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
 
 # config fields the teacher does not use: R2LDM's, the student's, and the latent normalisation
 # that is measured on the teacher when a student / R2LDM run starts
-R2LDM_ONLY = ("r2ldm_channels", "r2ldm_sample_steps")
+R2LDM_ONLY = ("r2ldm_channels", "r2ldm_cond_channels", "r2ldm_x0_clip", "r2ldm_sample_steps")
 NOT_TEACHER = (
     *R2LDM_ONLY,
     "train_sample_steps",
@@ -74,6 +81,8 @@ def _plan(
         if has_last:
             raise MsdnetError(out, "already holds a checkpoint: pass --resume, or choose another --out")
         n = epochs or (tcfg.epochs_teacher if kind == "teacher" else tcfg.epochs_student)
+        if kind == "r2ldm":
+            tcfg = replace(tcfg, lr=R2LDM_LR)
         return n, replace(tcfg, **overrides)
     if not has_last:
         raise MsdnetError(out, "has no checkpoint 'last' to resume")

@@ -55,7 +55,10 @@ class ModelConfig:
     denoiser_hidden: int = 32  # light denoiser bottleneck width (1x1 -> 3x3 -> 1x1)
     time_embed_dim: int = 64  # sinusoidal time embedding width
     head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
-    r2ldm_channels: tuple[int, ...] = (64, 128, 256)  # R2LDM U-Net widths per level
+    r2ldm_channels: tuple[int, ...] = (128, 64)  # R2LDM U-Net widths per level, the first >= 2C
+    r2ldm_cond_channels: int = 32  # R2LDM condition channels concatenated into every U-Net block
+    # R2LDM sampling clips its x0 estimate to +-this (unit-variance latents; <= 0: no clip)
+    r2ldm_x0_clip: float = 8.0
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)  # schedule, m, T_m
     train_sample_steps: int = 5  # DDIM steps of the student's training loop (with grads)
     r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise
@@ -153,6 +156,11 @@ class TrainConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 
 
+# Peak learning rate of R2LDM's stage 2 unless --lr says otherwise: the R2LDM paper trains it at
+# 1e-4; at the preset's 1e-3 a 2026-11 Astyx run collapsed to predicting zero (eps-MSE 1.0) at the
+# OneCycle peak and never recovered (docs/training.md). OneCycleLR warms up over its first 30 %.
+R2LDM_LR = 2e-4
+
 # The student's start step m: 100, not the paper's 500. With unit-variance latents and the gate
 # aligned to the forward chain at m, m = 500 drives the gate to delta ~0.07 (x_m nearly pure
 # noise) and the sim lite student's held-out occupancy IoU to 0.036 after 5 epochs, against 0.12
@@ -179,14 +187,15 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
         denoiser_hidden=8,
         time_embed_dim=16,
         head_channels=(8, 8, 8),
-        r2ldm_channels=(16, 32),
+        r2ldm_channels=(32, 32),
+        r2ldm_cond_channels=8,
         train_sample_steps=2,
         r2ldm_sample_steps=8,
     ),
-    # R2LDM's U-Net at (32, 64, 128) keeps the paper's size ratio R2LDM / MSDNet of about 2
-    # (40.3 M / 20.5 M): 2.8 M / 1.2 M here.
+    # R2LDM's U-Net at (128, 64): input / output width 2C, R2LDM / MSDNet 2.95 M / 1.19 M = 2.5
+    # (the paper: 40.3 M / 20.5 M = 2.0; at (128, 128) it would be 4.2).
     # 50 training loop steps, as inference: the light denoiser costs ~0.4 s of a ~1 s step
-    "lite": _preset("lite", max_voxels_lidar=40000, r2ldm_channels=(32, 64, 128), train_sample_steps=50),
+    "lite": _preset("lite", max_voxels_lidar=40000, r2ldm_channels=(128, 64), train_sample_steps=50),
     "paper": _preset(
         "paper",
         max_voxels_lidar=120000,
@@ -198,7 +207,8 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
         denoiser_hidden=64,
         time_embed_dim=128,
         head_channels=(32, 8, 8),  # 1/2 and full scale kept narrow: 40x320x320 on a CPU
-        r2ldm_channels=(128, 256, 512),
+        r2ldm_channels=(256, 256, 464),  # U-Net 38.1 M, R2LDM 39.1 M (the paper: 40.3 M)
+        r2ldm_cond_channels=64,
     ),
 }
 

@@ -216,7 +216,7 @@ class R2LDMModel(_FrozenTeacherMixin):
         super().__init__()
         self.cfg = cfg
         self.encoder = SparseEncoder(cfg, "radar")
-        self.step = R2LDMStep(R2LDMUNet(cfg))  # what r2ldm_step.onnx computes
+        self.step = R2LDMStep(R2LDMUNet(cfg), cfg.r2ldm_x0_clip)  # what r2ldm_step.onnx computes
         self._attach_teacher(cfg, teacher)
 
     @property
@@ -225,12 +225,20 @@ class R2LDMModel(_FrozenTeacherMixin):
         return self.step.unet
 
     def losses(self, batch: Batch) -> dict[str, Tensor]:
-        """R2LDM stage 2: L2 eps-prediction on noised F_l^D given c = F_r^S: {"loss", "diff"}."""
+        """R2LDM stage 2: L2 eps-prediction on noised F_l^D given c = F_r^S: {"loss", "diff"}.
+
+        Outside training (validation) with two or more frames, also the conditioning check
+        ``diff_shuffled``: the same x_t, t and eps with each frame given the next frame's
+        condition; a model that follows its radar input has ``diff`` well below it.
+        """
         f_l, _ = self._teacher_latent(batch)
         cond = self.encoder.encode(batch.radar)
         x_t, t, eps = self._noised(f_l)
         diff = eps_loss(self.unet(x_t, t, cond), eps)
-        return {"loss": diff, "diff": diff}
+        out = {"loss": diff, "diff": diff}
+        if not self.training and cond.shape[0] > 1:
+            out["diff_shuffled"] = eps_loss(self.unet(x_t, t, cond.roll(1, dims=0)), eps)
+        return out
 
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
