@@ -1,4 +1,5 @@
-"""onnxruntime sessions: execution providers by short name, intra-op threads, no spinning.
+"""Graph sessions: onnxruntime execution providers by short name, intra-op threads, no spinning;
+and ``openvino``: OpenVINO runs every graph it can load, onnxruntime's CPU provider the rest.
 
 onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve the numba
 voxelizer between graph calls, so spinning is always off (``session.intra_op.allow_spinning``).
@@ -6,7 +7,9 @@ voxelizer between graph calls, so spinning is always off (``session.intra_op.all
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
+from typing import Any
 
 import onnxruntime as ort
 
@@ -18,12 +21,14 @@ PROVIDERS: dict[str, str] = {
     "cuda": "CUDAExecutionProvider",
     "tensorrt": "TensorrtExecutionProvider",
 }
+OPENVINO = "openvino"  # not an onnxruntime provider: runtime.openvino_session (the [openvino] extra)
 
 
 def available_providers() -> list[str]:
     """Short names of the providers this onnxruntime build offers (``cpu`` always)."""
     have = set(ort.get_available_providers())
-    return [name for name, full in PROVIDERS.items() if full in have]
+    names = [name for name, full in PROVIDERS.items() if full in have]
+    return names + ([OPENVINO] if importlib.util.find_spec("openvino") is not None else [])
 
 
 def resolve_providers(provider: str) -> list[str]:
@@ -34,6 +39,10 @@ def resolve_providers(provider: str) -> list[str]:
     """
     name = provider.strip().lower()
     have = available_providers()
+    if name == OPENVINO and name not in have:
+        raise MsdnetError("provider", "openvino needs the OpenVINO runtime: pip install 'msdnet[openvino]'")
+    if name == OPENVINO:  # the graphs OpenVINO cannot load run on onnxruntime's CPU provider
+        return [PROVIDERS["cpu"]]
     if name not in PROVIDERS or name not in have:
         raise MsdnetError(
             "provider",
@@ -49,7 +58,7 @@ def resolve_providers(provider: str) -> list[str]:
 
 def device_of(provider: str) -> str:
     """OrtValue device type for buffers that live next to ``provider``'s kernels."""
-    return "cpu" if provider.strip().lower() == "cpu" else "cuda"
+    return "cpu" if provider.strip().lower() in ("cpu", OPENVINO) else "cuda"
 
 
 def session_options(threads: int | None = None) -> ort.SessionOptions:
@@ -68,15 +77,24 @@ def session_options(threads: int | None = None) -> ort.SessionOptions:
     return opts
 
 
-def create_session(
-    model: bytes, name: str | Path, provider: str = "cpu", threads: int | None = None
-) -> ort.InferenceSession:
+def create_session(model: bytes, name: str | Path, provider: str = "cpu", threads: int | None = None) -> Any:
     """An inference session from serialized ONNX ``model`` bytes (already hash-checked).
 
     Sessions are built from bytes so the file checked is exactly the file run. ``name`` is only
-    used in error messages.
+    used in error messages. ``provider`` ``openvino``: an :class:`OpenVinoSession` (same API
+    subset) when OpenVINO can load the graph, else onnxruntime on the CPU; ``get_providers()``
+    says which.
     """
     providers = resolve_providers(provider)
+    if provider.strip().lower() == OPENVINO:
+        from msdnet.runtime.openvino_session import OpenVinoSession
+
+        if threads is not None and threads < 1:
+            raise MsdnetError("threads", f"must be >= 1, got {threads}")
+        try:
+            return OpenVinoSession(model, threads)
+        except Exception:  # noqa: BLE001 - any conversion failure: this graph stays on onnxruntime
+            pass
     try:
         return ort.InferenceSession(model, sess_options=session_options(threads), providers=providers)
     except Exception as err:  # onnxruntime raises its own exception types

@@ -6,9 +6,10 @@ pipeline runs: the coarse-to-fine ``recon_head_sparse.onnx`` with its gate, or t
 Engines:
 
 - ``onnxruntime``: ours, the pipeline's own sessions (its threads), plain ``session.run``;
-- ``openvino``: the same ONNX files compiled for the CPU with ``INFERENCE_NUM_THREADS`` = threads
-  (the optional ``[openvino]`` extra); a graph it cannot load (``rgfd_adapter.onnx``: no
-  DeformConv in its ONNX front end) is reported with the reason;
+- ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
+  (``runtime.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
+  extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
+  reported with the reason;
 - ``torch_eager``: the torch modules the graphs were exported from (``export.graphs.graph_modules``:
   the checkpoint's weights, or the random weights of the exported random model),
   ``torch.set_num_threads(threads)``, ``inference_mode``;
@@ -92,17 +93,13 @@ def _onnxruntime(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds) -> Cal
 
 
 def _openvino(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds, threads: int) -> Callable[[], None]:
-    import openvino as ov
+    from msdnet.runtime.openvino_session import OpenVinoSession
 
-    core = ov.Core()
-    model = core.read_model(pipe.artifact.root / spec.file)
-    compiled = core.compile_model(model, "CPU", {"INFERENCE_NUM_THREADS": threads})
-    req = compiled.create_infer_request()
-    ordered = [[f[n] for n in spec.inputs] for f in feeds]  # by position: OpenVINO may rename inputs
+    sess = OpenVinoSession(pipe.artifact.graphs[spec.file], threads)  # f32, as --provider openvino
 
     def run() -> None:
-        for f in ordered:
-            req.infer(f)
+        for f in feeds:
+            sess.run(None, f)
 
     return run
 

@@ -1,0 +1,75 @@
+"""``--provider openvino``: OpenVINO runs the graphs it loads, onnxruntime the rest; same results
+as onnxruntime under the export tolerances (``export.verify``). Needs the [openvino] extra, which
+.ci/run installs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from export_helpers import make_artifact
+
+from msdnet.export.verify import E2E_DIFF_TOL, GraphCheck, compare_points
+from msdnet.runtime import onnx_spec
+from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.session import available_providers, resolve_providers
+
+pytest.importorskip("openvino")
+
+
+@pytest.fixture(scope="module")
+def pipes(tmp_path_factory) -> tuple[Pipeline, Pipeline]:
+    folder = make_artifact(tmp_path_factory.mktemp("ov"), "student")
+    return Pipeline.from_dir(folder, threads=1), Pipeline.from_dir(folder, "openvino", threads=1)
+
+
+def _scan(pipe: Pipeline) -> np.ndarray:
+    rng = np.random.default_rng(5)
+    lo, hi = np.asarray(pipe.artifact.grid.point_range[:3]), np.asarray(pipe.artifact.grid.point_range[3:])
+    pts = np.zeros((250, len(pipe.columns)), np.float32)
+    pts[:, :3] = lo + (hi - lo) * rng.random((250, 3))
+    return pts
+
+
+def test_openvino_loads_all_but_the_adapter(pipes):
+    _, ov = pipes
+    assert "openvino" in available_providers() and resolve_providers("openvino") == ["CPUExecutionProvider"]
+    engines = {f: s.get_providers()[0] for f, s in ov.sessions.items()}
+    assert engines.pop(onnx_spec.RGFD_ADAPTER.file) == "CPUExecutionProvider"  # DeformConv
+    assert set(engines.values()) == {"OpenVINO"} and onnx_spec.RECON_HEAD_SPARSE.file in engines
+
+
+def test_every_graph_within_the_export_tolerances(pipes):
+    cpu, ov = pipes
+    scan = _scan(cpu)
+    for gate in (None, 0.3):  # the dense head, then the coarse-to-fine head
+        cpu.gate = ov.gate = gate
+        try:
+            ref, got = cpu(scan, steps=5, seed=2), ov(scan, steps=5, seed=2)
+        finally:
+            cpu.gate = ov.gate = None
+        differ, shift = compare_points(ref.points, got.points, cpu.artifact.grid)
+        assert len(ref.points) > 100 and differ <= E2E_DIFF_TOL * len(ref.points), (differ, shift)
+        assert ref.stats["head_voxels"] == got.stats["head_voxels"]
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal(cpu.bev_shape).astype(np.float32)
+    row = cpu.coefficients()[0]
+    feeds = {
+        onnx_spec.DENOISER_STEP.file: {"x_t": x, "t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]},
+        onnx_spec.RECON_HEAD.file: {"features": x},
+        onnx_spec.RECON_HEAD_SPARSE.file: {"features": x, "gate": np.full(1, 0.3, np.float32)},
+    }
+    for file, feed in feeds.items():
+        check = GraphCheck(file)
+        for a, b in zip(ov.sessions[file].run(None, feed), cpu.sessions[file].run(None, feed), strict=True):
+            check.add(a.astype(np.float32), b.astype(np.float32))
+        assert check.ok, (file, check.max_rel, check.cosine)
+
+
+def test_openvino_missing_is_one_line(monkeypatch):
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda n, *a: None if n == "openvino" else real(n, *a))
+    with pytest.raises(MsdnetError, match=r"pip install 'msdnet\[openvino\]'"):
+        resolve_providers("openvino")
