@@ -13,7 +13,9 @@ from msdnet.runtime.errors import one_line_errors
 
 @click.command("latency", context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for results.*")
-@click.option("--preset", type=click.Choice(["tiny", "lite", "paper"]), help="Random models [lite].")
+@click.option(
+    "--preset", type=click.Choice(["tiny", "lite", "paper", "paper-width"]), help="Random models [lite]."
+)
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
 @click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
