@@ -39,11 +39,11 @@ from msdnet.runtime.artifact import Artifact, load_artifact
 from msdnet.runtime.ddim import step_coefficients
 from msdnet.runtime.decode import decode_packed, decode_sparse, packed_shape
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.kernels import warmup as numba_warmup
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.session import create_session, device_of
 from msdnet.runtime.voxelize import in_range_mask, voxelize
-from msdnet.runtime.voxelize import warmup as numba_warmup
 
 
 @dataclass(frozen=True, eq=False)

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from msdnet.runtime.grid import GridConfig
+from msdnet.runtime.onnx_spec import NUM_DOWN
 from msdnet.runtime.voxelize import bit_length, radix_sort
 
 KERNEL_TAPS = 27  # 3 x 3 x 3 taps: the width of every rules table
@@ -282,6 +284,14 @@ def down_shape(shape_zyx: Sequence[int], stride: int = 2, padding: int = 1) -> t
     if len(out) != 3 or min(out) < 1:
         raise ValueError(f"grid {tuple(shape_zyx)} too small for stride {stride}, padding {padding}")
     return out  # type: ignore[return-value]
+
+
+def level_shapes(grid: GridConfig, num_down: int = NUM_DOWN) -> list[tuple[int, int, int]]:
+    """Dense (D, H, W) of encoder levels 0..num_down (level l is 1 / 2**l of the grid)."""
+    shapes = [tuple(grid.shape_zyx)]
+    for _ in range(num_down):
+        shapes.append(down_shape(shapes[-1]))
+    return shapes  # type: ignore[return-value]
 
 
 def subm_rulebook(coords: np.ndarray, shape_zyx: Sequence[int]) -> np.ndarray:

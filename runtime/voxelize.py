@@ -280,12 +280,7 @@ def in_range_mask(points: np.ndarray, grid: GridConfig) -> np.ndarray:
 
 
 def warmup() -> None:
-    """Compile (or load from numba's cache) the voxelizer, rulebook builder and decoder."""
-    from msdnet.runtime.decode import warmup as warm_decode
-    from msdnet.runtime.rulebook import warmup as warm_rulebook
-
+    """Compile (or load from numba's cache) the voxelizer (``runtime.kernels.warmup``: every kernel)."""
     grid = GridConfig((0.0, 0.0, 0.0, 1.0, 1.0, 1.0), (0.5, 0.5, 0.5))
     pts = np.array([[0.1, 0.1, 0.1, 1.0], [0.6, 0.6, 0.6, 2.0], [0.2, 0.1, 0.1, 3.0]], np.float32)
     voxelize(pts, grid, max_voxels=1)
-    warm_rulebook()
-    warm_decode()

@@ -18,27 +18,16 @@ dynamic voxel counts.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.grid import GridConfig
 from msdnet.runtime.onnx_spec import NUM_DOWN
-from msdnet.runtime.rulebook import down_shape
+from msdnet.runtime.rulebook import level_shapes
+from msdnet.training.batch import EncoderInput
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.sparse import SparseConvBlock
 
-if TYPE_CHECKING:  # batch -> targets -> encoder at run time
-    from msdnet.training.batch import EncoderInput
-
-
-def level_shapes(grid: GridConfig, num_down: int = NUM_DOWN) -> list[tuple[int, int, int]]:
-    """Dense (D, H, W) of encoder levels 0..num_down (level l is 1 / 2**l of the grid)."""
-    shapes = [grid.shape_zyx]
-    for _ in range(num_down):
-        shapes.append(down_shape(shapes[-1]))
-    return shapes
+__all__ = ["SparseEncoder", "level_shapes"]  # level_shapes lives in runtime.rulebook (torch-free)
 
 
 class SparseEncoder(nn.Module):

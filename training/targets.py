@@ -19,8 +19,8 @@ import torch
 from torch import Tensor
 
 from msdnet.runtime.grid import GridConfig
+from msdnet.runtime.rulebook import level_shapes
 from msdnet.runtime.voxelize import voxelize
-from msdnet.training.encoder import level_shapes
 
 SCALE_FACTORS = (4, 2, 1)  # voxel size multiple of scales 1/4, 1/2, 1, in head output order
 

@@ -25,12 +25,12 @@ from msdnet.benchmarks.numpy_reference import down_rulebook_numpy, subm_rulebook
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.decode import unpack_children
 from msdnet.runtime.grid import GridConfig
+from msdnet.runtime.kernels import warmup as numba_warmup
 from msdnet.runtime.pipeline import Pipeline
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.session import device_of
 from msdnet.runtime.voxelize import voxelize
-from msdnet.runtime.voxelize import warmup as numba_warmup
 from msdnet.training.batch import make_encoder_input
 
 Scan = np.ndarray | PointCloud  # (N, C) float32 in the model's columns, or a named cloud
