@@ -64,7 +64,7 @@ def _connect(address: str) -> bool:
         return False
     try:
         ray.init(
-            address=None if address == "local" else address,
+            address=address,  # "local": always a new instance, never a running cluster
             logging_level=logging.ERROR,
             log_to_driver=False,
             include_dashboard=False,
