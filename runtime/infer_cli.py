@@ -20,6 +20,10 @@ N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --work
 ``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/infer_dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
 how much closer to the LiDAR the output is than the radar.
+
+Robotics (optional extras): ``BAG --topic T`` densifies a ROS 1/2 bag's PointCloud2 topic into a
+ROS 2 bag (``runtime/rosbag_io``), ``--ray [ADDRESS]`` runs the files on Ray actors
+(``runtime/ray_batch``), ``--rerun FILE.rrd`` records the run for Rerun (``runtime/rerun_log``).
 """
 
 from __future__ import annotations
