@@ -82,7 +82,7 @@ def test_step_applies_the_config_clip():
 
 
 def test_unet_learns_to_follow_a_small_scale_condition():
-    """A tiny U-Net trained for a few seconds on latents that the (0.03-scale) condition fixes
+    """A tiny U-Net trained for 80 steps on latents that the (0.03-scale) condition fixes
     must score eps-MSE with its own condition <= 0.9 x with a shuffled one (the 2026-11 U-Net,
     without the condition normalisation, scored the same with either)."""
     torch.manual_seed(0)
@@ -90,7 +90,7 @@ def test_unet_learns_to_follow_a_small_scale_condition():
     unet = R2LDMUNet(TINY)
     opt = torch.optim.Adam(unet.parameters(), lr=2e-3)
     abar = _abar()
-    for _ in range(150):
+    for _ in range(80):  # ~5 s; own / shuffled ~0.79 here, 0.5 after 150 steps
         x0, cond = _synthetic(16, gen)
         t = torch.randint(1, TINY.diffusion.num_train_steps + 1, (16,), generator=gen)
         a = abar[t].reshape(-1, 1, 1, 1)
@@ -131,6 +131,8 @@ def test_validation_losses_carry_the_conditioning_check():
         out = model.losses(batch)
     assert {"loss", "diff", "diff_shuffled"} <= set(out)
     assert float(out["diff_shuffled"]) > 0.0
+    with torch.no_grad():  # a batch of one still gets the check (its own condition mirrored)
+        assert "diff_shuffled" in model.losses(collate(frames[:1], TINY))
 
 
 def test_r2ldm_trains_at_the_stage_2_learning_rate(tmp_path):

@@ -227,17 +227,19 @@ class R2LDMModel(_FrozenTeacherMixin):
     def losses(self, batch: Batch) -> dict[str, Tensor]:
         """R2LDM stage 2: L2 eps-prediction on noised F_l^D given c = F_r^S: {"loss", "diff"}.
 
-        Outside training (validation) with two or more frames, also the conditioning check
-        ``diff_shuffled``: the same x_t, t and eps with each frame given the next frame's
-        condition; a model that follows its radar input has ``diff`` well below it.
+        Outside training (validation), also the conditioning check ``diff_shuffled``: the same
+        x_t, t and eps with each frame given the previous frame's condition in the batch (a batch
+        of one: its own condition mirrored left-right, so every frame counts in both means); a
+        model that follows its radar input has ``diff`` well below it.
         """
         f_l, _ = self._teacher_latent(batch)
         cond = self.encoder.encode(batch.radar)
         x_t, t, eps = self._noised(f_l)
         diff = eps_loss(self.unet(x_t, t, cond), eps)
         out = {"loss": diff, "diff": diff}
-        if not self.training and cond.shape[0] > 1:
-            out["diff_shuffled"] = eps_loss(self.unet(x_t, t, cond.roll(1, dims=0)), eps)
+        if not self.training:
+            other = cond.roll(1, dims=0) if cond.shape[0] > 1 else cond.flip(-1)
+            out["diff_shuffled"] = eps_loss(self.unet(x_t, t, other), eps)
         return out
 
     def predict(
