@@ -143,3 +143,19 @@ def test_r2ldm_trains_at_the_stage_2_learning_rate(tmp_path):
     assert tcfg.lr == R2LDM_LR and 1e-4 <= R2LDM_LR <= 2e-4
     assert _plan("r2ldm", tmp_path / "run", False, None, TRAIN_PRESETS["lite"], {"lr": 5e-4})[1].lr == 5e-4
     assert _plan("student", tmp_path / "run", False, None, TRAIN_PRESETS["lite"], {})[1].lr == 1e-3
+
+
+def test_condition_alignment_is_an_r2ldm_training_term():
+    from msdnet.training.batch import collate
+
+    cfg = dataclasses.replace(TINY, losses=dataclasses.replace(TINY.losses, r2ldm_cond_align=0.5))
+    torch.manual_seed(0)
+    model = R2LDMModel(cfg)
+    assert not hasattr(R2LDMModel(TINY), "cond_head")  # 0 = R2LDM as published
+    rng = np.random.default_rng(0)
+    frames = [(rng.uniform(0, 6, (30, 5)).astype(np.float32), rng.uniform(0, 6, (200, 3)).astype(np.float32))]
+    out = model.losses(collate(frames, cfg))
+    torch.testing.assert_close(out["loss"], out["diff"] + 0.5 * out["cond_align"])
+    out["loss"].backward()  # the regression reaches the radar encoder
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.encoder.parameters())
+    assert all(p.requires_grad is False for p in model.teacher.parameters())

@@ -63,7 +63,10 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     if tstate.kind != "teacher":
         raise MsdnetError(folder, f"is a {tstate.kind} checkpoint, not a teacher")
     # the student-only loss settings do not concern the teacher either
-    student_only = {k: getattr(tcfg.losses, k) for k in ("lambdas", "denoiser_distill_grad", "adapter_align")}
+    student_only = {
+        k: getattr(tcfg.losses, k)
+        for k in ("lambdas", "denoiser_distill_grad", "adapter_align", "r2ldm_cond_align")
+    }
     differs = config_diff(tcfg, replace(cfg, losses=replace(cfg.losses, **student_only)), ignore=NOT_TEACHER)
     if differs:
         fields = ", ".join(differs)
@@ -151,6 +154,12 @@ def _plan(
     help="Weight of the noise adapter's alignment loss [1; 0 = gate trained end to end].",
 )
 @click.option(
+    "--cond-align",
+    type=float,
+    default=None,
+    help="R2LDM: weight of the condition's auxiliary regression of the teacher latent [0 = as published].",
+)
+@click.option(
     "--ablate",
     multiple=True,
     help="Student ablation (repeatable): rgfd (no RGFD), dgfd (no adapter and loop), adapter (Eq. 9 at m).",
@@ -196,6 +205,7 @@ def main(
     lambdas: str | None,
     start_step: int | None,
     adapter_align: float | None,
+    cond_align: float | None,
     ablate: tuple[str, ...],
     latent_frames: int,
     init: Path | None,
@@ -239,6 +249,10 @@ def main(
         if adapter_align < 0:
             raise MsdnetError("--adapter-align", f"must be >= 0, got {adapter_align}")
         cfg = replace(cfg, losses=replace(cfg.losses, adapter_align=adapter_align))
+    if cond_align is not None:
+        if cond_align < 0 or kind != "r2ldm":
+            raise MsdnetError("--cond-align", f"is an R2LDM weight >= 0, got {cond_align} for {kind}")
+        cfg = replace(cfg, losses=replace(cfg.losses, r2ldm_cond_align=cond_align))
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")

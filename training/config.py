@@ -33,6 +33,11 @@ class LossWeights:
     # the gate learns from it alone (it is detached in the loop); 0 = the gate learns end to end
     # through Eq. 14, where it measurably collapses to delta = 1 (no noise; docs/training.md)
     adapter_align: float = 1.0
+    # R2LDM only: weight of an auxiliary regression of the normalised teacher latent from the
+    # radar condition F_r^S (a 1x1 conv head, training only). The U-Net alone gives the radar
+    # encoder no signal until it uses the condition, and a fresh condition is noise it learns to
+    # ignore; 0 = R2LDM as published (the encoder learns through the eps loss only)
+    r2ldm_cond_align: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -217,6 +217,8 @@ class R2LDMModel(_FrozenTeacherMixin):
         self.cfg = cfg
         self.encoder = SparseEncoder(cfg, "radar")
         self.step = R2LDMStep(R2LDMUNet(cfg), cfg.r2ldm_x0_clip)  # what r2ldm_step.onnx computes
+        if cfg.losses.r2ldm_cond_align > 0:  # training only, not exported
+            self.cond_head = nn.Conv2d(cfg.bev_channels, cfg.bev_channels, 1)
         self._attach_teacher(cfg, teacher)
 
     @property
@@ -237,6 +239,9 @@ class R2LDMModel(_FrozenTeacherMixin):
         x_t, t, eps = self._noised(f_l)
         diff = eps_loss(self.unet(x_t, t, cond), eps)
         out = {"loss": diff, "diff": diff}
+        if self.cfg.losses.r2ldm_cond_align > 0:
+            out["cond_align"] = eps_loss(self.cond_head(cond), f_l)  # MSE to the teacher latent
+            out["loss"] = diff + self.cfg.losses.r2ldm_cond_align * out["cond_align"]
         if not self.training:
             other = cond.roll(1, dims=0) if cond.shape[0] > 1 else cond.flip(-1)
             out["diff_shuffled"] = eps_loss(self.unet(x_t, t, other), eps)
