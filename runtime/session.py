@@ -22,6 +22,11 @@ PROVIDERS: dict[str, str] = {
     "tensorrt": "TensorrtExecutionProvider",
 }
 OPENVINO = "openvino"  # not an onnxruntime provider: runtime.openvino_session (the [openvino] extra)
+# Graphs ``openvino`` runs with OpenVINO (f32, same threads), where it was faster per stage in
+# msdnet-bench latency (docs/results/latency-*: the heads 1.0-2.8x, the lite encoder 1.6x). The
+# step graph stays on onnxruntime (50 calls a frame: OpenVINO's per-call cost made the loop 1.3-2x
+# slower in every preset measured), so does rgfd_adapter.onnx (DeformConv: OpenVINO cannot load it).
+OPENVINO_GRAPHS = ("encoder.onnx", "recon_head.onnx", "recon_head_sparse.onnx")
 
 
 def available_providers() -> list[str]:
@@ -82,11 +87,11 @@ def create_session(model: bytes, name: str | Path, provider: str = "cpu", thread
 
     Sessions are built from bytes so the file checked is exactly the file run. ``name`` is only
     used in error messages. ``provider`` ``openvino``: an :class:`OpenVinoSession` (same API
-    subset) when OpenVINO can load the graph, else onnxruntime on the CPU; ``get_providers()``
-    says which.
+    subset) for the ``OPENVINO_GRAPHS`` (``name`` is the file name) when OpenVINO can load them,
+    else onnxruntime on the CPU; ``get_providers()`` says which.
     """
     providers = resolve_providers(provider)
-    if provider.strip().lower() == OPENVINO:
+    if provider.strip().lower() == OPENVINO and Path(str(name)).name in OPENVINO_GRAPHS:
         from msdnet.runtime.openvino_session import OpenVinoSession
 
         if threads is not None and threads < 1:

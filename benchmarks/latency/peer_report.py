@@ -81,12 +81,13 @@ def peers_section(res: dict[str, Any]) -> list[str]:
     if "stages" not in p:
         return ["", "## Peer engines", "", p.get("note", "not measured")]
     engines = [e for e in ENGINE_LABELS if e in p["totals"]]
+    labels = {**ENGINE_LABELS, "onnxruntime": f"ours (--provider {res['provider']})"}
     out = [
         "",
         f"## Peer engines per stage, ms (same graphs, inputs and {p['threads']} threads; "
         f"{p['repeats']} interleaved repeats, medians)",
         "",
-        "| stage | " + " | ".join(ENGINE_LABELS[e] for e in engines) + " | ours / best peer |",
+        "| stage | " + " | ".join(labels[e] for e in engines) + " | ours / best peer |",
         "|---|" + "---:|" * (len(engines) + 1),
     ]
     for stage, row in p["stages"].items():

@@ -5,7 +5,8 @@ Stages are the pipeline's graph stages: ``encoder``, ``rgfd_adapter`` (MSDNet on
 pipeline runs: the coarse-to-fine ``recon_head_sparse.onnx`` with its gate, or the dense head).
 Engines:
 
-- ``onnxruntime``: ours, the pipeline's own sessions (its threads), plain ``session.run``;
+- ``onnxruntime``: ours, the pipeline's own sessions (its threads and provider: with
+  ``--provider openvino`` some of them are OpenVINO's), plain ``session.run``;
 - ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
   (``runtime.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
