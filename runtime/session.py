@@ -24,7 +24,7 @@ PROVIDERS: dict[str, str] = {
 OPENVINO = "openvino"  # not an onnxruntime provider: runtime.openvino_session (the [openvino] extra)
 # Graphs ``openvino`` runs with OpenVINO (f32, same threads), where it was faster per stage in
 # msdnet-bench latency (docs/results/latency-*: the heads 1.0-2.8x, the lite encoder 1.6x). The
-# step graph stays on onnxruntime (50 calls a frame: OpenVINO's per-call cost made the loop 1.3-2x
+# step graph stays on onnxruntime (50 calls a frame: OpenVINO's per-call cost made the loop 1.06-2x
 # slower in every preset measured), so does rgfd_adapter.onnx (DeformConv: OpenVINO cannot load it).
 OPENVINO_GRAPHS = ("encoder.onnx", "recon_head.onnx", "recon_head_sparse.onnx")
 
