@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from msdnet.benchmarks import odometry, place
+from msdnet.benchmarks.downstream import odometry, place
 
 
 def _scene(rng: np.random.Generator) -> np.ndarray:
