@@ -174,6 +174,7 @@ class Pipeline:
         """Head and decode stages on loop buffer ``final`` -> (points (M, 3), confidence (M,),
         half-scale voxels decoded at full scale)."""
         if self.gate is None:
+            self._last_final = None  # sparse_head_outputs() is about the last call only
             self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
             self._timer("head")
             pts, conf = decode_packed(self._occ[0], self._off[0], self.artifact.grid, thr)

@@ -100,6 +100,7 @@ def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
     finally:
         pipe.gate = None
     dense = pipe(scan, threshold=thr, steps=4)
+    assert pipe.sparse_head_outputs() == {}  # the last call ran the dense head
     assert len(dense.points) > 0 and dense.stats["head_voxels"] == every.stats["head_voxels"]
     for res in (every, kept):
         assert np.array_equal(res.points, dense.points) and np.array_equal(res.confidence, dense.confidence)
