@@ -10,7 +10,7 @@ import pytest
 import torch
 from export_helpers import make_artifact, one_torch_thread, tiny_config
 
-from msdnet.export.gate import keep_all_gate
+from msdnet.export.gate import calibrate_gate, keep_all_gate
 from msdnet.export.manifest import write_manifest
 from msdnet.runtime.artifact import load_artifact
 from msdnet.runtime.decode import decode_packed, decode_sparse, packed_shape
@@ -140,3 +140,14 @@ def test_keep_all_gate() -> None:
     g = keep_all_gate(occ, gate_occ, 0.5)
     assert 0.0 <= g < 0.3 and np.all((gate_occ > g) >= (occ > 0.5).any(axis=1))
     assert keep_all_gate(occ[:0], gate_occ[:0], 0.5) == 0.0
+
+
+def test_calibrate_gate_keeps_the_asked_share(sparse_pipe: Pipeline) -> None:
+    scans = [_scan(sparse_pipe, 150), _scan(sparse_pipe, 250)]
+    full = calibrate_gate(sparse_pipe, scans, threshold=0.6, recall=1.0)
+    half = calibrate_gate(sparse_pipe, scans, threshold=0.6, recall=0.5)
+    assert sparse_pipe.gate is None  # left as it was
+    assert full.points_kept == 1.0 and full.gate <= full.keep_all_gate + 1e-4 and full.frames == 2
+    assert 0.5 <= half.points_kept < 1.0 and half.gate > full.gate and half.voxels_kept < full.voxels_kept
+    with pytest.raises(MsdnetError, match="recall"):
+        calibrate_gate(sparse_pipe, scans, recall=0.0)
