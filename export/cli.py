@@ -200,6 +200,11 @@ def export_model(
     help="Default occupancy threshold written to the manifest [the checkpoint's config].",
 )
 @click.option(
+    "--guidance",
+    type=click.FloatRange(min=0.0),
+    help="R2LDM: classifier-free guidance weight w baked into the step graph [the config's, 1 = off].",
+)
+@click.option(
     "--calibrate",
     type=click.IntRange(min=1),
     help="Choose the threshold on N frames of --data held out of the training range by the run "
@@ -217,6 +222,7 @@ def main(
     threads: int | None,
     sign_key: Path | None,
     threshold: float | None,
+    guidance: float | None,
     calibrate: int | None,
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
@@ -238,6 +244,11 @@ def main(
     model, cfg, state = load_for_export(checkpoint)
     if state.kind not in ("student", "r2ldm"):
         raise MsdnetError(checkpoint, f"a {state.kind} checkpoint cannot be exported (student or r2ldm)")
+    if guidance is not None:
+        if state.kind != "r2ldm":
+            raise MsdnetError("--guidance", f"is for R2LDM checkpoints, not a {state.kind}")
+        cfg = dataclasses.replace(cfg, r2ldm_guidance=guidance)
+        model.step.guidance = guidance  # the step graph (and calibration) sample with it
     if calibrate:
         holdout = float(state.dataset.get("holdout", 0.0))
         threshold = _calibrated(model, cfg, dataset, data, calibrate, seed, holdout)

@@ -159,3 +159,28 @@ def test_condition_alignment_is_an_r2ldm_training_term():
     out["loss"].backward()  # the regression reaches the radar encoder
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.encoder.parameters())
     assert all(p.requires_grad is False for p in model.teacher.parameters())
+
+
+def test_guided_step_mixes_conditional_and_unconditional_eps_and_exports():
+    from test_dense_nets import ONNX_REL_ERR, onnx_session, rel_err, run_onnx
+
+    from msdnet.runtime import onnx_spec
+
+    cfg = dataclasses.replace(TINY, r2ldm_guidance=2.5)
+    torch.manual_seed(0)
+    model = R2LDMModel(cfg).eval()
+    torch.nn.init.normal_(model.unet.out[2].weight, std=0.1)
+    x, cond = torch.randn(2, 16, 4, 4), torch.randn(2, 16, 4, 4)
+    t, a_t, a_prev = torch.tensor([500.0]), torch.tensor([0.08]), torch.tensor([0.1])
+    with torch.no_grad():
+        got = model.step(x, cond, t, a_t, a_prev)
+        e_c, e_0 = model.unet(x, t, cond), model.unet(x, t, torch.zeros_like(cond))
+        want = ddim_update_clipped(x, e_0 + 2.5 * (e_c - e_0), a_t, a_prev, cfg.r2ldm_x0_clip)
+        unguided = R2LDMStep(model.unet, cfg.r2ldm_x0_clip)(x, cond, t, a_t, a_prev)
+    torch.testing.assert_close(got, want)
+    assert not torch.allclose(got, unguided, atol=1e-4)
+    feeds = (x[:1], cond[:1], t, a_t, a_prev)
+    spec = onnx_spec.R2LDM_STEP
+    with torch.no_grad():
+        ref = model.step(*feeds).numpy()
+    assert rel_err(run_onnx(onnx_session(model.step, feeds, spec), spec, feeds), ref) <= ONNX_REL_ERR

@@ -44,7 +44,14 @@ def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
 
 # config fields the teacher does not use: R2LDM's, the student's, and the latent normalisation
 # that is measured on the teacher when a student / R2LDM run starts
-R2LDM_ONLY = ("r2ldm_channels", "r2ldm_cond_channels", "r2ldm_x0_clip", "r2ldm_sample_steps")
+R2LDM_ONLY = (
+    "r2ldm_channels",
+    "r2ldm_cond_channels",
+    "r2ldm_x0_clip",
+    "r2ldm_cond_dropout",
+    "r2ldm_guidance",
+    "r2ldm_sample_steps",
+)
 NOT_TEACHER = (
     *R2LDM_ONLY,
     "train_sample_steps",
@@ -160,6 +167,12 @@ def _plan(
     help="R2LDM: weight of the condition's auxiliary regression of the teacher latent [0 = as published].",
 )
 @click.option(
+    "--cond-dropout",
+    type=float,
+    default=None,
+    help="R2LDM: share of frames trained without condition, for classifier-free guidance [0].",
+)
+@click.option(
     "--ablate",
     multiple=True,
     help="Student ablation (repeatable): rgfd (no RGFD), dgfd (no adapter and loop), adapter (Eq. 9 at m).",
@@ -206,6 +219,7 @@ def main(
     start_step: int | None,
     adapter_align: float | None,
     cond_align: float | None,
+    cond_dropout: float | None,
     ablate: tuple[str, ...],
     latent_frames: int,
     init: Path | None,
@@ -253,6 +267,10 @@ def main(
         if cond_align < 0 or kind != "r2ldm":
             raise MsdnetError("--cond-align", f"is an R2LDM weight >= 0, got {cond_align} for {kind}")
         cfg = replace(cfg, losses=replace(cfg.losses, r2ldm_cond_align=cond_align))
+    if cond_dropout is not None:
+        if not 0 <= cond_dropout < 1 or kind != "r2ldm":
+            raise MsdnetError("--cond-dropout", f"is an R2LDM share in [0, 1), got {cond_dropout} for {kind}")
+        cfg = replace(cfg, r2ldm_cond_dropout=cond_dropout)
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")

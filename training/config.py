@@ -64,6 +64,10 @@ class ModelConfig:
     r2ldm_cond_channels: int = 32  # R2LDM condition channels concatenated into every U-Net block
     # R2LDM sampling clips its x0 estimate to +-this (unit-variance latents; <= 0: no clip)
     r2ldm_x0_clip: float = 8.0
+    # R2LDM classifier-free guidance: training zeroes the condition of this share of frames, and
+    # the step graph mixes eps = eps(0) + w (eps(c) - eps(0)) with w = r2ldm_guidance (1 = off)
+    r2ldm_cond_dropout: float = 0.0
+    r2ldm_guidance: float = 1.0
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)  # schedule, m, T_m
     train_sample_steps: int = 5  # DDIM steps of the student's training loop (with grads)
     r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise

@@ -216,7 +216,8 @@ class R2LDMModel(_FrozenTeacherMixin):
         super().__init__()
         self.cfg = cfg
         self.encoder = SparseEncoder(cfg, "radar")
-        self.step = R2LDMStep(R2LDMUNet(cfg), cfg.r2ldm_x0_clip)  # what r2ldm_step.onnx computes
+        # what r2ldm_step.onnx computes
+        self.step = R2LDMStep(R2LDMUNet(cfg), cfg.r2ldm_x0_clip, cfg.r2ldm_guidance)
         if cfg.losses.r2ldm_cond_align > 0:  # training only, not exported
             self.cond_head = nn.Conv2d(cfg.bev_channels, cfg.bev_channels, 1)
         self._attach_teacher(cfg, teacher)
@@ -237,7 +238,11 @@ class R2LDMModel(_FrozenTeacherMixin):
         f_l, _ = self._teacher_latent(batch)
         cond = self.encoder.encode(batch.radar)
         x_t, t, eps = self._noised(f_l)
-        diff = eps_loss(self.unet(x_t, t, cond), eps)
+        c = cond
+        if self.training and self.cfg.r2ldm_cond_dropout > 0:  # classifier-free guidance: no condition
+            keep = torch.rand(cond.shape[0], device=cond.device) >= self.cfg.r2ldm_cond_dropout
+            c = cond * keep.to(cond.dtype).reshape(-1, 1, 1, 1)
+        diff = eps_loss(self.unet(x_t, t, c), eps)
         out = {"loss": diff, "diff": diff}
         if self.cfg.losses.r2ldm_cond_align > 0:
             out["cond_align"] = eps_loss(self.cond_head(cond), f_l)  # MSE to the teacher latent

@@ -180,17 +180,25 @@ def ddim_update_clipped(x_t: Tensor, eps: Tensor, abar_t: Tensor, abar_prev: Ten
 
 
 class R2LDMStep(nn.Module):
-    """One DDIM step of R2LDM with the x0 clip of ``cfg.r2ldm_x0_clip``.
+    """One DDIM step of R2LDM with the x0 clip of ``cfg.r2ldm_x0_clip`` and classifier-free
+    guidance ``eps = eps(x, 0) + w (eps(x, c) - eps(x, 0))``, w = ``guidance`` (1: one U-Net call;
+    otherwise both in one batch of 2B).
 
     forward(x_t (B, C, H, W), cond (B, C, H, W), t (1,), abar_t (1,), abar_prev (1,)) -> x_prev
     (the input order of ``runtime.onnx_spec.R2LDM_STEP``).
     """
 
-    def __init__(self, unet: R2LDMUNet, x0_clip: float = 0.0) -> None:
+    def __init__(self, unet: R2LDMUNet, x0_clip: float = 0.0, guidance: float = 1.0) -> None:
         super().__init__()
         self.unet = unet
         self.x0_clip = float(x0_clip)
+        self.guidance = float(guidance)
 
     def forward(self, x_t: Tensor, cond: Tensor, t: Tensor, abar_t: Tensor, abar_prev: Tensor) -> Tensor:
-        eps = self.unet(x_t, t, cond)
+        if self.guidance == 1.0:
+            eps = self.unet(x_t, t, cond)
+        else:
+            both = self.unet(torch.cat([x_t, x_t]), t, torch.cat([cond, torch.zeros_like(cond)]))
+            eps_c, eps_0 = both.chunk(2)  # each (B, C, H, W)
+            eps = eps_0 + self.guidance * (eps_c - eps_0)
         return ddim_update_clipped(x_t, eps, abar_t, abar_prev, self.x0_clip)
