@@ -22,11 +22,12 @@ PROVIDERS: dict[str, str] = {
     "tensorrt": "TensorrtExecutionProvider",
 }
 OPENVINO = "openvino"  # not an onnxruntime provider: runtime.openvino_session (the [openvino] extra)
-# Graphs ``openvino`` runs with OpenVINO (f32, same threads), where it was faster per stage in
-# msdnet-bench latency (docs/results/latency-*: the heads 1.0-2.8x, the lite encoder 1.6x). The
-# step graph stays on onnxruntime (50 calls a frame: OpenVINO's per-call cost made the loop 1.06-2x
-# slower in every preset measured), so does rgfd_adapter.onnx (DeformConv: OpenVINO cannot load it).
-OPENVINO_GRAPHS = ("encoder.onnx", "recon_head.onnx", "recon_head_sparse.onnx")
+# Graphs ``openvino`` runs with OpenVINO (f32, same threads): the heads, where it was faster in every
+# msdnet-bench latency run (docs/results/latency-*: sim-lite 2.5-2.75x, paper-width 1.5x, paper 1.0x).
+# The encoder (onnxruntime as fast or faster in 3 of 4 runs) and the step graph (50 calls a frame:
+# OpenVINO's per-call cost made the loop 1.06-2x slower in every preset) stay on onnxruntime, so
+# does rgfd_adapter.onnx (DeformConv: OpenVINO cannot load it).
+OPENVINO_GRAPHS = ("recon_head.onnx", "recon_head_sparse.onnx")
 
 
 def available_providers() -> list[str]:

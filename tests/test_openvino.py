@@ -1,4 +1,4 @@
-"""``--provider openvino``: OpenVINO runs the encoder and heads, onnxruntime the rest; same results
+"""``--provider openvino``: OpenVINO runs the heads, onnxruntime the rest; same results
 as onnxruntime under the export tolerances (``export.verify``). Needs the [openvino] extra, which
 .ci/run installs."""
 
@@ -37,7 +37,7 @@ def test_openvino_runs_the_graphs_where_it_wins(pipes):
     assert "openvino" in available_providers() and resolve_providers("openvino") == ["CPUExecutionProvider"]
     engines = {f: s.get_providers()[0] for f, s in ov.sessions.items()}
     assert {f for f, e in engines.items() if e == "OpenVINO"} == set(OPENVINO_GRAPHS)
-    on_ort = {onnx_spec.DENOISER_STEP.file, onnx_spec.RGFD_ADAPTER.file}
+    on_ort = {onnx_spec.ENCODER.file, onnx_spec.DENOISER_STEP.file, onnx_spec.RGFD_ADAPTER.file}
     assert {engines[f] for f in on_ort} == {"CPUExecutionProvider"}
     # OpenVINO could run the step graph too (the loop only ran slower), not the adapter (DeformConv)
     graphs = ov.artifact.graphs

@@ -16,7 +16,8 @@ Engines:
   ``torch.set_num_threads(threads)``, ``inference_mode``;
 - ``torch_compile``: the same modules through ``torch.compile`` (compiled during the warm-up).
 
-Every repeat runs each engine once per stage, interleaved, so all see the same load. A peer's
+Every repeat runs each engine once per stage, interleaved (the order rotated per repeat), so all
+see the same load. A peer's
 total is the sum of its stage medians, with onnxruntime's median standing in for a stage it cannot
 run (listed in ``substituted``). ``engine_over_best_peer`` = ours / the fastest peer, per stage and
 for the total (<= 1: ours is the fastest).
@@ -170,9 +171,13 @@ def peer_comparison(
                     continue
                 runners[stage][engine] = fn
         seconds: dict[str, dict[str, list[float]]] = {s: {e: [] for e in runners[s]} for s in specs}
-        for _ in range(repeats):  # interleaved: every engine sees the same load
+        for r in range(repeats):  # interleaved: every engine sees the same load
             for stage in specs:
-                for engine, fn in runners[stage].items():
+                # rotated per repeat: whoever runs right after torch (whose OpenMP pool keeps
+                # spinning for a while) takes that hit in turn, not always the same engine
+                order = list(runners[stage].items())
+                order = order[r % len(order) :] + order[: r % len(order)] if order else order
+                for engine, fn in order:
                     t0 = time.perf_counter()
                     fn()
                     seconds[stage][engine].append(time.perf_counter() - t0)
