@@ -185,7 +185,7 @@ def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple
     type=click.Path(path_type=Path),
     help="Ed25519 public key (PEM): refuse a model not signed with it (msdnet-export --sign).",
 )
-@click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
+@click.option("--provider", default="cpu", show_default=True, help="cpu, openvino, cuda or tensorrt.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
 @click.option(
     "--dataset",
