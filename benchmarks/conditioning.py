@@ -34,14 +34,16 @@ EPS_NAMES = ("own", "shuffled", "zero", "linear")  # eps-MSE columns (module doc
 def conditioning_report(
     checkpoint: Path,
     dataset: str,
-    root: Path,
+    data: Path,
     split: str = "val",
     max_frames: int | None = None,
     sample_frames: int = 8,
     seed: int = 0,
     threads: int | None = None,
+    guidance: float | None = None,
 ) -> dict[str, Any]:
-    """The figures above for an R2LDM checkpoint, as a JSON-ready dict."""
+    """The figures above for an R2LDM checkpoint, as a JSON-ready dict; samples use the
+    classifier-free guidance ``guidance`` (default: the checkpoint's config, 1 = off)."""
     import torch
 
     from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
@@ -56,7 +58,9 @@ def conditioning_report(
     model, cfg, state = load_checkpoint(checkpoint)
     if state.kind != "r2ldm":
         raise MsdnetError(checkpoint, f"is a {state.kind} checkpoint; conditioning reports on an R2LDM")
-    ds, frame_ids = split_frames(state.dataset, dataset, root, split, max_frames)
+    ds, frame_ids = split_frames(state.dataset, dataset, data, split, max_frames)
+    if guidance is not None:
+        model.step.guidance = float(guidance)
     model.eval()
     latents, conds = [], []  # per usable frame: (1, C, H8, W8) normalised teacher latent, F_r^S
     with torch.no_grad():
@@ -71,7 +75,7 @@ def conditioning_report(
             conds.append(model.encoder.encode(batch.radar))
     n = len(latents)
     if n < 2:
-        raise MsdnetError(root, f"{n} frame(s) with radar and LiDAR points in the grid; need 2 or more")
+        raise MsdnetError(data, f"{n} frame(s) with radar and LiDAR points in the grid; need 2 or more")
     rng = np.random.default_rng(seed)
     abar = alphas_cumprod(cfg.diffusion)
     edges = np.linspace(0, cfg.diffusion.num_train_steps, T_BUCKETS + 1).astype(int)
@@ -127,6 +131,7 @@ def conditioning_report(
             "frames": len(samples),
             "steps": cfg.r2ldm_sample_steps,
             "x0_clip": cfg.r2ldm_x0_clip,
+            "guidance": model.step.guidance,
             "sample_std": float(s[:, 0].mean()),
             "teacher_latent_std": float(s[:, 1].mean()),
             "rms_to_teacher_own": float(s[:, 2].mean()),
@@ -157,7 +162,8 @@ def conditioning_markdown(doc: dict[str, Any]) -> str:
         "",
         f"Own / shuffled: **{e['own_over_shuffled']:.3f}** (goal <= 0.9).",
         "",
-        f"## Samples ({s['frames']} frames, {s['steps']} DDIM steps from T, x0 clip {s['x0_clip']:g})",
+        f"## Samples ({s['frames']} frames, {s['steps']} DDIM steps from T, x0 clip {s['x0_clip']:g}, "
+        f"guidance {s.get('guidance', 1.0):g})",
         "",
         "| sample std | teacher latent std | RMS to teacher, own | RMS to teacher, shuffled "
         "| own vs shuffled sample, relative |",
@@ -194,6 +200,7 @@ def write_report(doc: dict[str, Any], out: Path) -> None:
 @click.option("--sample-frames", type=click.IntRange(min=0), default=8, show_default=True,
               help="Frames sampled from x_T with own and shuffled condition.")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of t, eps and x_T.")
+@click.option("--guidance", type=click.FloatRange(min=0.0), help="Samples' guidance w [the checkpoint's].")
 @click.option("--threads", type=click.IntRange(min=1), help="torch threads.")
 @click.option(
     "--out", required=True, type=click.Path(path_type=Path), help="Folder for conditioning.json/.md."
@@ -202,7 +209,6 @@ def write_report(doc: dict[str, Any], out: Path) -> None:
 def conditioning_command(checkpoint: Path, out: Path, **opts: Any) -> None:
     """Does an R2LDM checkpoint follow its radar condition (eps-MSE with own vs shuffled condition
     per t, samples from the same noise under both)?"""
-    doc = conditioning_report(checkpoint, opts["dataset"], opts["data"], opts["split"], opts["max_frames"],
-                              opts["sample_frames"], opts["seed"], opts["threads"])  # fmt: skip
+    doc = conditioning_report(checkpoint, **opts)
     write_report(doc, out)
     click.echo(conditioning_markdown(doc))
