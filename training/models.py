@@ -210,7 +210,13 @@ class StudentModel(_FrozenTeacherMixin):
 
 
 class R2LDMModel(_FrozenTeacherMixin):
-    """R2LDM baseline: conditional latent diffusion from noise, decoded by the teacher's head."""
+    """R2LDM baseline: conditional latent diffusion from noise, decoded by the teacher's head.
+
+    Beyond the paper (both off by default, docs/training.md): ``losses.r2ldm_cond_align`` adds a
+    1x1 head regressing the teacher latent from the condition (training only), and
+    ``r2ldm_cond_dropout`` trains without condition on that share of frames, for the classifier-
+    free guidance ``r2ldm_guidance`` that the step (and ``r2ldm_step.onnx``) applies.
+    """
 
     def __init__(self, cfg: ModelConfig, teacher: TeacherModel | None = None) -> None:
         super().__init__()
