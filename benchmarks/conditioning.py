@@ -18,14 +18,13 @@ Randomness (t, eps, x_T) comes from ``numpy.random.default_rng(seed)``.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 import click
 import numpy as np
 
-from msdnet.benchmarks.stages import T_BUCKETS, split_frames
+from msdnet.benchmarks.stages import T_BUCKETS, frame_batches, split_frames, write_markdown_and_json
 from msdnet.runtime.errors import one_line_errors
 
 EPS_NAMES = ("own", "shuffled", "zero", "linear")  # eps-MSE columns (module docstring)
@@ -48,8 +47,6 @@ def conditioning_report(
 
     from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.errors import MsdnetError
-    from msdnet.runtime.preprocess import preprocess_frame
-    from msdnet.training.batch import collate
     from msdnet.training.checkpoint import load_checkpoint
     from msdnet.training.nn.denoiser import ddim_loop
 
@@ -64,13 +61,7 @@ def conditioning_report(
     model.eval()
     latents, conds = [], []  # per usable frame: (1, C, H8, W8) normalised teacher latent, F_r^S
     with torch.no_grad():
-        for fid in frame_ids:
-            frame = preprocess_frame(ds.get(fid), cfg.grid)
-            radar = np.ascontiguousarray(frame.radar.select(cfg.radar_columns).points, dtype=np.float32)
-            lidar = np.ascontiguousarray(frame.lidar.select(cfg.lidar_columns).points, dtype=np.float32)
-            if len(radar) == 0 or len(lidar) == 0:
-                continue
-            batch = collate([(radar, lidar)], cfg)
+        for _, _, batch in frame_batches(ds, frame_ids, cfg):
             latents.append(model._teacher_latent(batch)[0])
             conds.append(model.encoder.encode(batch.radar))
     n = len(latents)
@@ -176,13 +167,7 @@ def conditioning_markdown(doc: dict[str, Any]) -> str:
 
 def write_report(doc: dict[str, Any], out: Path) -> None:
     """``out/conditioning.json`` and ``out/conditioning.md``, each written atomically."""
-    from msdnet.runtime.io import atomic_output
-
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_output(out / "conditioning.json") as tmp:
-        tmp.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    with atomic_output(out / "conditioning.md") as tmp:
-        tmp.write_text(conditioning_markdown(doc), encoding="utf-8")
+    write_markdown_and_json(doc, conditioning_markdown(doc), out, "conditioning")
 
 
 @click.command("conditioning", context_settings={"help_option_names": ["-h", "--help"]})

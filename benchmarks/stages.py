@@ -20,6 +20,7 @@ Randomness (t, eps, the adapter's noise) comes from ``numpy.random.default_rng(s
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -53,6 +54,31 @@ def split_frames(
     return ds, pick_frames(ids, max_frames)
 
 
+def frame_batches(ds: Any, frame_ids: list[str], cfg: Any) -> Iterator[tuple[np.ndarray, np.ndarray, Any]]:
+    """(radar (N, R) float32 in ``cfg.radar_columns``, LiDAR (M, 3) float32 [x, y, z], the
+    collated batch of that one frame) for each frame with radar and LiDAR points in the grid."""
+    from msdnet.runtime.preprocess import preprocess_frame
+    from msdnet.training.batch import collate
+
+    for fid in frame_ids:
+        frame = preprocess_frame(ds.get(fid), cfg.grid)
+        radar = np.ascontiguousarray(frame.radar.select(cfg.radar_columns).points, dtype=np.float32)
+        lidar = np.ascontiguousarray(frame.lidar.select(cfg.lidar_columns).points, dtype=np.float32)
+        if len(radar) and len(lidar):
+            yield radar, lidar, collate([(radar, lidar)], cfg)
+
+
+def write_markdown_and_json(doc: dict[str, Any], markdown: str, out: Path, stem: str) -> None:
+    """``out/<stem>.json`` (the doc) and ``out/<stem>.md`` (the page), each written atomically."""
+    from msdnet.runtime.io import atomic_output
+
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_output(out / f"{stem}.json") as tmp:
+        tmp.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    with atomic_output(out / f"{stem}.md") as tmp:
+        tmp.write_text(markdown, encoding="utf-8")
+
+
 def stage_report(
     checkpoint: Path,
     dataset: str,
@@ -71,8 +97,6 @@ def stage_report(
     from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.decode import decode_occupancy
     from msdnet.runtime.errors import MsdnetError
-    from msdnet.runtime.preprocess import preprocess_frame
-    from msdnet.training.batch import collate
     from msdnet.training.checkpoint import load_checkpoint
     from msdnet.training.nn.adapter import NoiseAdapter
 
@@ -95,13 +119,7 @@ def stage_report(
     coeffs = step_coefficients(cfg.diffusion)
     model.eval()
     with torch.no_grad():
-        for fid in frame_ids:
-            frame = preprocess_frame(ds.get(fid), cfg.grid)
-            radar = np.ascontiguousarray(frame.radar.select(cfg.radar_columns).points, dtype=np.float32)
-            lidar = np.ascontiguousarray(frame.lidar.select(cfg.lidar_columns).points, dtype=np.float32)
-            if len(radar) == 0 or len(lidar) == 0:
-                continue
-            batch = collate([(radar, lidar)], cfg)
+        for _, lidar, batch in frame_batches(ds, frame_ids, cfg):
             z, nonempty = model._teacher_latent(batch)  # (1, C, H8, W8) normalised, (1, H8, W8)
             for k in range(T_BUCKETS):
                 t = int(rng.integers(edges[k] + 1, edges[k + 1] + 1))
@@ -229,13 +247,7 @@ def stage_markdown(doc: dict[str, Any]) -> str:
 
 def write_report(doc: dict[str, Any], out: Path) -> None:
     """``out/stages.json`` and ``out/stages.md``, each written atomically."""
-    from msdnet.runtime.io import atomic_output
-
-    out.mkdir(parents=True, exist_ok=True)
-    with atomic_output(out / "stages.json") as tmp:
-        tmp.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    with atomic_output(out / "stages.md") as tmp:
-        tmp.write_text(stage_markdown(doc), encoding="utf-8")
+    write_markdown_and_json(doc, stage_markdown(doc), out, "stages")
 
 
 @click.command("stages", context_settings={"help_option_names": ["-h", "--help"]})

@@ -187,6 +187,36 @@ def test_stage_report_on_a_tiny_student(astyx_root, tmp_path):
     assert res.exit_code != 0 and "teacher checkpoint" in res.output
 
 
+def test_conditioning_report_on_a_tiny_r2ldm(astyx_root, tmp_path):
+    import json
+
+    from click.testing import CliRunner
+
+    from msdnet.benchmarks.cli import main
+    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
+    from msdnet.training.config import TrainConfig
+
+    cfg = tiny_config("astyx")
+    torch.manual_seed(0)
+    model = build_model("r2ldm", cfg)
+    torch.nn.init.normal_(model.unet.out[2].weight, std=0.1)  # zero-initialised: ignores the condition
+    ckpt = tmp_path / "ckpt"
+    save_checkpoint(ckpt, model, cfg, CheckpointState(kind="r2ldm", train=TrainConfig(), epochs=1))
+    args = ["conditioning", str(ckpt), "--dataset", "astyx", "--data", str(astyx_root), "--max-frames", "3"]
+    res = CliRunner().invoke(
+        main, [*args, "--sample-frames", "1", "--threads", "1", "--out", str(tmp_path / "o")]
+    )
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "o" / "conditioning.json").read_text())
+    assert doc["frames"] == 3 and len(doc["eps_mse"]["buckets"]) == 10
+    mean = doc["eps_mse"]["mean_over_t"]
+    assert mean["own"] != mean["shuffled"] and doc["eps_mse"]["own_over_shuffled"] > 0
+    assert doc["samples"]["frames"] == 1 and doc["samples"]["own_vs_shuffled_relative_difference"] > 0
+    assert (tmp_path / "o" / "conditioning.md").read_text().startswith("# Conditioning of")
+    res = CliRunner().invoke(main, ["stages", *args[1:], "--out", str(tmp_path / "o2")])
+    assert res.exit_code != 0 and "r2ldm checkpoint" in res.output
+
+
 def test_the_gate_learns_from_the_alignment_loss_alone(astyx_root):
     """adapter_align > 0: the adapter's gradient is exactly that of the alignment term (the loop
     sees the gate as a constant); 0: the gate learns end to end through Eq. 14."""
