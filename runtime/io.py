@@ -91,11 +91,12 @@ def read_cloud(
     except Exception as err:  # third-party parsers raise many types on broken content
         cause = " ".join(str(err).split())[:200] or type(err).__name__
         raise MsdnetError(p, f"unreadable {suffix} content: {cause}") from None
-    return _finish(p, array, names)
+    return cloud_from_array(p, array, names)
 
 
-def _finish(path: Path, array: np.ndarray, names: tuple[str, ...]) -> PointCloud:
-    """(N, C) array -> PointCloud with non-finite rows dropped and counted."""
+def cloud_from_array(path: str | Path, array: np.ndarray, names: tuple[str, ...]) -> PointCloud:
+    """(N, C) array [``names``] read from ``path`` -> float32 PointCloud with non-finite rows (and
+    values beyond float32) dropped and counted in ``dropped_nonfinite``."""
     if array.ndim != 2 or array.shape[1] != len(names):
         raise MsdnetError(path, f"got {array.shape} values for columns {' '.join(names)}")
     if len(set(names)) != len(names):

@@ -30,8 +30,8 @@ import numpy as np
 from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io import DENSE_COLUMNS, temp_name
-from msdnet.runtime.pointcloud import PointCloud, canonical_column
+from msdnet.runtime.io import DENSE_COLUMNS, cloud_from_array, temp_name
+from msdnet.runtime.pointcloud import canonical_column
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 DENSE_SUFFIX = "/dense"  # output topic = input topic + this
@@ -248,9 +248,8 @@ def _run_message(
         start = time.perf_counter()
         msg = reader.deserialize(raw, POINTCLOUD2)
         values = pointcloud2_to_array(msg, resolve_fields(msg, pipe.columns, mapping, label))
-        finite = np.isfinite(values).all(axis=1)
-        cloud = PointCloud(values[finite], tuple(pipe.columns), source=label)
-        row.update(points_in=len(cloud), dropped=int(len(values) - len(cloud)))
+        cloud = cloud_from_array(label, values, tuple(pipe.columns))
+        row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
         res = pipe(
             cloud,
             steps=opts["steps"],
