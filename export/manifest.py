@@ -11,7 +11,8 @@ Keys (read back by :mod:`msdnet.runtime.artifact`):
 - ``threshold``: default occupancy threshold; ``gate``: the coarse-to-fine head's half-scale
   occupancy gate (``null``: not calibrated, the runtime decodes with the dense head);
 - ``input``: point ``columns`` in order, the per-column ``normalisation`` (shift, scale; applied
-  inside ``encoder.onnx``, so the runtime feeds raw voxel means) and ``max_voxels``;
+  inside ``encoder.onnx``, so the runtime feeds raw voxel means), ``max_voxels`` and ``layout``
+  (the ``.bin`` layout of the training data, ``runtime/layouts``; ``msdnet-infer``'s default);
 - ``bev_shape``: (1, C, H, W) of every BEV map; ``opset``; ``versions`` (torch, onnx, ...);
 - ``parameters``: per graph and in total;
 - ``graphs``: per graph file: name, bytes, sha256, input and output names (the optional
@@ -32,6 +33,7 @@ import onnxruntime
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
 from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod
+from msdnet.runtime.layouts import layout_for_columns
 from msdnet.training.checkpoint import versions as checkpoint_versions
 from msdnet.training.config import ModelConfig
 from msdnet.training.models import bev_shape
@@ -106,6 +108,7 @@ def build_manifest(
                 "applied": "inside encoder.onnx: (voxel mean - shift) / scale",
             },
             "max_voxels": cfg.max_voxels_radar,
+            "layout": layout_for_columns(cfg.radar_columns),  # .bin layout of the training data
         },
         "bev_shape": [1, *bev_shape(cfg)],
         "opset": onnx_spec.OPSET,

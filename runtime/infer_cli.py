@@ -2,8 +2,10 @@
 
 Inputs are files or folders (the point-cloud files directly inside a folder, sorted) of any
 format ``runtime/io`` reads. Each output is ``OUT/<input stem>.<format>`` with columns
-``x y z confidence`` (radar frame, metres; confidence = occupancy). One bad file does not stop
-the others: the summary names it and the exit code is 1. Bad arguments exit 2 with one line.
+``x y z confidence`` (radar frame, metres; confidence = occupancy). A ``.bin`` is read with
+``--layout`` / ``--columns``, else with the model's training layout (``runtime/layouts``). One bad
+file does not stop the others: the summary names it and the exit code is 1. Bad arguments exit 2
+with one line.
 ``--keep-radar`` (off by default) appends the input radar points inside the grid box to every
 output, confidence 1 (``Pipeline.__call__(keep_radar=True)``); by default the output is the model's.
 
@@ -42,6 +44,7 @@ import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.infer_guards import check_out, clamp_workers, prepare_out, usable_cores, watch_parent
 from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_dense
+from msdnet.runtime.layouts import LAYOUTS, columns_for, resolve_bin_columns
 
 BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
@@ -110,7 +113,7 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
     row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0, "dropped": 0}
     try:
         start = time.perf_counter()
-        cloud = read_cloud(src)
+        cloud = read_cloud(src, columns=columns_for(src, opts.get("bin_columns")))
         row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
         res = pipe(
             cloud,
@@ -210,6 +213,10 @@ def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple
     help="Run the files on Ray actors (runtime/ray_batch): local, auto or ray://HOST:PORT.",
 )
 @click.option("--rerun", type=click.Path(path_type=Path), help="Also write a Rerun recording FILE.rrd.")
+@click.option(
+    "--layout", type=click.Choice(list(LAYOUTS)), help=".bin columns (runtime/layouts) [the model's data]."
+)
+@click.option("--columns", "bin_columns", metavar="X,Y,Z", help=".bin columns by name (not with --layout).")
 @one_line_errors
 def main(
     inputs: tuple[Path, ...],
@@ -234,6 +241,8 @@ def main(
     bag_storage: str | None,
     ray_address: str | None,
     rerun: Path | None,
+    layout: str | None,
+    bin_columns: str | None,
 ) -> None:
     """Densify radar point clouds with an exported MSDNet (or R2LDM) model."""
     from msdnet.runtime.artifact import load_artifact
@@ -251,6 +260,7 @@ def main(
         raise MsdnetError("--steps", str(err)) from None
     opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
     opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
+    opts["bin_columns"], _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
     if topic is not None:
         if dataset or ray_address or png or skip_existing or workers > 1:
             raise MsdnetError(
