@@ -207,10 +207,13 @@ def save_checkpoint(
     state: CheckpointState,
     optimizer: torch.optim.Optimizer | None = None,
     scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+    ema: dict[str, torch.Tensor] | None = None,
 ) -> Path:
     """Write ``folder`` atomically (temporary folder beside it, then rename); returns it.
 
     model: the bare module (unwrap DDP first); its ``state_dict`` goes to model.safetensors.
+    ema: the EMA of the trainable weights by parameter name (training/loop.py), kept with the
+    optimizer state in training.safetensors (``ema.<name>``) so a resume continues it.
     """
     folder = Path(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -225,6 +228,9 @@ def save_checkpoint(
                 training_json["optimizer"] = split_tensors(optimizer.state_dict(), tensors, "opt")
             if scheduler is not None:
                 training_json["scheduler"] = split_tensors(scheduler.state_dict(), tensors, "sch")
+            if ema is not None:
+                training_json["ema"] = sorted(ema)
+                tensors.update({f"ema.{k}": v.detach().contiguous() for k, v in ema.items()})
             safetensors.torch.save_file(tensors, str(tmp / TRAINING_FILE))
             files[TRAINING_FILE] = _sha256(tmp / TRAINING_FILE)
         meta = {
@@ -352,8 +358,10 @@ def load_training_state(
     path: str | Path,
     optimizer: torch.optim.Optimizer,
     scheduler: torch.optim.lr_scheduler.LRScheduler | None = None,
+    ema: dict[str, torch.Tensor] | None = None,
 ) -> None:
-    """Restore optimizer (and scheduler) state saved by :func:`save_checkpoint`."""
+    """Restore optimizer (and scheduler, and the weights' EMA into ``ema`` in place) state saved
+    by :func:`save_checkpoint`."""
     folder, meta = read_meta(path)
     training = meta.get("training", {})
     if "optimizer" not in training:
@@ -362,3 +370,8 @@ def load_training_state(
     optimizer.load_state_dict(join_tensors(training["optimizer"], tensors))
     if scheduler is not None and "scheduler" in training:
         scheduler.load_state_dict(join_tensors(training["scheduler"], tensors))
+    if ema is not None:
+        if sorted(ema) != training.get("ema"):
+            raise MsdnetError(folder, "holds no EMA of these weights (trained without --ema?)")
+        for k, v in ema.items():
+            v.copy_(tensors[f"ema.{k}"])

@@ -55,6 +55,8 @@ R2LDM_ONLY = (
 NOT_TEACHER = (
     *R2LDM_ONLY,
     "train_sample_steps",
+    "denoiser_hidden",
+    "time_embed_dim",
     "latent_norm",
     "use_rgfd",
     "use_dgfd",
@@ -72,13 +74,57 @@ def _teacher(path: Path, cfg: ModelConfig) -> torch.nn.Module:
     # the student-only loss settings do not concern the teacher either
     student_only = {
         k: getattr(tcfg.losses, k)
-        for k in ("lambdas", "denoiser_distill_grad", "adapter_align", "r2ldm_cond_align")
+        for k in (
+            "lambdas",
+            "denoiser_distill_grad",
+            "denoiser_grad_steps",
+            "denoiser_grad_ratio",
+            "adapter_align",
+            "r2ldm_cond_align",
+        )
     }
     differs = config_diff(tcfg, replace(cfg, losses=replace(cfg.losses, **student_only)), ignore=NOT_TEACHER)
     if differs:
         fields = ", ".join(differs)
         raise MsdnetError(folder, f"teacher config differs from this run: {fields}"[:300])
     return load_checkpoint(folder)[0]
+
+
+def _student_options(
+    cfg: ModelConfig, kind: str, grad: str | None, hidden: int | None, embed: int | None
+) -> ModelConfig:
+    """--denoiser-grad MODE[:K[:R]], --denoiser-hidden, --time-embed into the config."""
+    if kind != "student" and (grad, hidden, embed) != (None, None, None):
+        raise MsdnetError(None, "--denoiser-grad, --denoiser-hidden and --time-embed are student options")
+    if hidden is not None or embed is not None:
+        if (hidden is not None and hidden < 1) or (embed is not None and (embed < 2 or embed % 2)):
+            raise MsdnetError(None, "--denoiser-hidden must be >= 1 and --time-embed even and >= 2")
+        cfg = replace(
+            cfg, denoiser_hidden=hidden or cfg.denoiser_hidden, time_embed_dim=embed or cfg.time_embed_dim
+        )
+    if grad is None:
+        return cfg
+    mode, *rest = grad.split(":")
+    try:
+        steps = int(rest[0]) if rest and rest[0] else 0
+        ratio = float(rest[1]) if len(rest) > 1 else 0.0
+    except ValueError:
+        steps, ratio = -1, -1.0
+    if (
+        mode not in ("detach", "joint")
+        or len(rest) > 2
+        or steps < 0
+        or ratio < 0
+        or (mode == "detach" and rest)
+    ):
+        raise MsdnetError("--denoiser-grad", f"expected detach, joint, joint:K or joint:K:R, got {grad!r}")
+    losses = replace(
+        cfg.losses,
+        denoiser_distill_grad=mode == "joint",
+        denoiser_grad_steps=steps,
+        denoiser_grad_ratio=ratio,
+    )
+    return replace(cfg, losses=losses)
 
 
 def _plan(
@@ -185,6 +231,20 @@ def _plan(
     help="Training frames on which a student / R2LDM run measures the teacher's latent shift and scale.",
 )
 @click.option(
+    "--ema",
+    type=float,
+    default=None,
+    help="Decay of an EMA of the weights, scored and kept in best/ [0 = off].",
+)
+@click.option(
+    "--denoiser-grad",
+    default=None,
+    help="Student: how Eq. 14 reaches the denoiser's weights through the loop: detach (Eq. 10 only), "
+    "joint (Eq. 15), joint:K (last K loop steps), joint:K:R or joint::R (scaled to R x Eq. 10's norm).",
+)
+@click.option("--denoiser-hidden", type=int, default=None, help="Student: light denoiser width [32].")
+@click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
+@click.option(
     "--init",
     type=click.Path(path_type=Path),
     default=None,
@@ -222,6 +282,10 @@ def main(
     cond_dropout: float | None,
     ablate: tuple[str, ...],
     latent_frames: int,
+    ema: float | None,
+    denoiser_grad: str | None,
+    denoiser_hidden: int | None,
+    time_embed: int | None,
     init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -230,7 +294,9 @@ def main(
     _choice(preset, sorted(MODEL_PRESETS), "preset")
     if epochs is not None and epochs < 1:
         raise MsdnetError(None, f"--epochs must be >= 1, got {epochs}")
-    options = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers}
+    if ema is not None and not 0 <= ema < 1:
+        raise MsdnetError("--ema", f"is a decay in [0, 1), got {ema}")
+    options = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers, "ema_decay": ema}
     if not augment:
         options["augment"] = AugmentConfig.off()
     overrides = {k: v for k, v in options.items() if v is not None}
@@ -271,6 +337,7 @@ def main(
         if not 0 <= cond_dropout < 1 or kind != "r2ldm":
             raise MsdnetError("--cond-dropout", f"is an R2LDM share in [0, 1), got {cond_dropout} for {kind}")
         cfg = replace(cfg, r2ldm_cond_dropout=cond_dropout)
+    cfg = _student_options(cfg, kind, denoiser_grad, denoiser_hidden, time_embed)
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, replace
 
 from msdnet.runtime.ddim import DiffusionConfig
 from msdnet.runtime.grid import GRID_PRESETS, GridConfig
+from msdnet.training.published_config import PublishedR2LDMConfig
 
 
 @dataclass(frozen=True)
@@ -28,6 +29,12 @@ class LossWeights:
     # adapter). Measured: with it on, Eq. 14 is 120-640x Eq. 10 on the denoiser and the
     # denoiser stops predicting noise (docs/training.md).
     denoiser_distill_grad: bool = False
+    # with denoiser_distill_grad: the loop's gradient reaches the denoiser's weights through its
+    # last N DDIM steps only (truncated back-propagation; 0 = every step, Eq. 15 as the paper)
+    denoiser_grad_steps: int = 0
+    # with denoiser_distill_grad: per-loss gradient normalisation, the loop's gradient on the
+    # denoiser's weights scaled to this multiple of Eq. 10's (0 = unscaled; training/nn/grad_balance.py)
+    denoiser_grad_ratio: float = 0.0
     # weight of the adapter's alignment loss: x_m (Eq. 12) against the forward chain at m of the
     # teacher latent with the same eps, sqrt(abar_m) F_l + sqrt(1 - abar_m) eps (Eq. 9). When > 0
     # the gate learns from it alone (it is detached in the loop); 0 = the gate learns end to end
@@ -71,6 +78,10 @@ class ModelConfig:
     diffusion: DiffusionConfig = field(default_factory=DiffusionConfig)  # schedule, m, T_m
     train_sample_steps: int = 5  # DDIM steps of the student's training loop (with grads)
     r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise
+    # R2LDM recipe: "improved" (ours, the fields above) or "published" (the authors' code: the
+    # teacher is its own LPCR autoencoder, and ``published`` holds the rest; training/r2ldm_published.py)
+    r2ldm_recipe: str = "improved"
+    published: PublishedR2LDMConfig = field(default_factory=PublishedR2LDMConfig)  # recipe "published"
     threshold: float = 0.5  # occupancy threshold for decoding points
     losses: LossWeights = field(default_factory=LossWeights)  # loss weights
     # (shift, scale) per radar column: the encoder graph applies (mean - shift) / scale to the
@@ -162,6 +173,10 @@ class TrainConfig:
     grad_clip: float = 10.0  # max gradient norm
     num_workers: int = 0  # DataLoader workers
     seed: int = 0  # seed for weights, shuffling and noise
+    # decay of an exponential moving average of the trainable weights, updated every step
+    # (0 = off; the official R2LDM code evaluates an EMA at 0.995). When on, validation scores
+    # the EMA weights and best/ holds them; last/ keeps the raw weights and the EMA for resume
+    ema_decay: float = 0.0
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 
 

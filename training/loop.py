@@ -213,8 +213,10 @@ def _resume_state(
     model: torch.nn.Module,
     optimizer: torch.optim.Optimizer,
     scheduler: torch.optim.lr_scheduler.LRScheduler,
+    ema: dict[str, torch.Tensor] | None = None,
 ) -> CheckpointState:
-    """Load out/last into model / optimizer / scheduler after checking it fits this run."""
+    """Load out/last into model / optimizer / scheduler (/ the weights' EMA) after checking it
+    fits this run."""
     folder, saved_cfg, state = read_checkpoint(spec.out / "last")
     problems = []
     if state.kind != spec.kind:
@@ -231,7 +233,7 @@ def _resume_state(
     if problems:
         raise MsdnetError(folder, "cannot resume: " + "; ".join(problems))
     load_weights(model, folder / "model.safetensors")
-    load_training_state(folder, optimizer, scheduler)
+    load_training_state(folder, optimizer, scheduler, ema)
     return state
 
 
@@ -285,8 +287,9 @@ def train(
         while state.epoch < spec.epochs and (spec.stop_after is None or done_here < spec.stop_after):
             t0 = time.perf_counter()
             record = run.epoch()
-            record.update(evaluate(model, val_set, collate_fn, train_cfg, run.info, run.device,
-                                   metrics_fn, spec.metric_frames))  # fmt: skip
+            with run.ema_weights():  # validation scores the EMA weights when there is one
+                record.update(evaluate(model, val_set, collate_fn, train_cfg, run.info, run.device,
+                                       metrics_fn, spec.metric_frames))  # fmt: skip
             record.update(occupancy_scores(record))
             record["lr"] = run.scheduler.get_last_lr()[0]
             record["seconds"] = round(time.perf_counter() - t0, 3)
@@ -299,7 +302,8 @@ def train(
                 state.best_val_loss = val
             run.save("last")
             if best:
-                run.save("best")
+                with run.ema_weights():  # best/ holds the weights that were scored
+                    run.save("best")
             if log:
                 log.write("epoch", best=best, **record)
             done_here += 1
@@ -329,6 +333,11 @@ class _Run:
         self.device = torch.device(spec.device)
         model.to(self.device)
         self.params = [p for p in model.parameters() if p.requires_grad]  # not a frozen teacher
+        # EMA of the trainable weights by name (TrainConfig.ema_decay; None when off)
+        self.ema: dict[str, torch.Tensor] | None = None
+        if train_cfg.ema_decay > 0:
+            named = model.named_parameters()
+            self.ema = {n: p.detach().clone() for n, p in named if p.requires_grad}
         augments = getattr(train_set, "augments", False)  # a dataset with (epoch, i) keys
         self.sampler = EpochSampler(train_set, info, train_cfg.seed, with_epoch=augments)
         steps_per_epoch = math.ceil(len(self.sampler) / train_cfg.batch_size)
@@ -337,7 +346,9 @@ class _Run:
             self.optimizer, max_lr=train_cfg.lr, total_steps=max(1, spec.epochs * steps_per_epoch)
         )
         if spec.resume:
-            self.state = _resume_state(spec, cfg, train_cfg, info, model, self.optimizer, self.scheduler)
+            self.state = _resume_state(
+                spec, cfg, train_cfg, info, model, self.optimizer, self.scheduler, self.ema
+            )
         else:
             self.state = CheckpointState(kind=spec.kind, train=train_cfg, epochs=spec.epochs,
                                          teacher=spec.teacher, dataset=spec.dataset,
@@ -357,7 +368,36 @@ class _Run:
         """Checkpoint to ``out/<folder>`` (rank 0 only)."""
         if self.info.is_main:
             save_checkpoint(self.spec.out / folder, self.model, self.cfg, self.state,
-                            self.optimizer, self.scheduler)  # fmt: skip
+                            self.optimizer, self.scheduler, self.ema)  # fmt: skip
+
+    @torch.no_grad()
+    def update_ema(self) -> None:
+        """ema <- decay * ema + (1 - decay) * weights, after every optimizer step."""
+        if self.ema is None:
+            return
+        weight = 1.0 - self.train_cfg.ema_decay
+        for name, p in self.model.named_parameters():
+            if name in self.ema:
+                self.ema[name].lerp_(p.detach(), weight)
+
+    @contextmanager
+    def ema_weights(self) -> Iterator[None]:
+        """The model holds the EMA weights inside the block (the raw ones are put back after);
+        a no-op without EMA."""
+        if self.ema is None:
+            yield
+            return
+        params = dict(self.model.named_parameters())
+        raw = {n: params[n].detach().clone() for n in self.ema}
+        with torch.no_grad():
+            for n, v in self.ema.items():
+                params[n].copy_(v)
+        try:
+            yield
+        finally:
+            with torch.no_grad():
+                for n, v in raw.items():
+                    params[n].copy_(v)
 
     def epoch(self) -> dict[str, Any]:
         """One (possibly resumed) epoch of steps -> {"epoch", "step", "train_<term>": mean}.
@@ -386,6 +426,7 @@ class _Run:
             losses["loss"].backward()
             grad_norm = torch.nn.utils.clip_grad_norm_(self.params, self.train_cfg.grad_clip)
             self.optimizer.step()
+            self.update_ema()
             self.scheduler.step()
             state.step += 1
             state.batch_in_epoch += 1

@@ -43,6 +43,7 @@ from msdnet.training.losses import (
 )
 from msdnet.training.nn.adapter import ForwardNoising, NoiseAdapter
 from msdnet.training.nn.denoiser import DenoiserStep, LightDenoiser, ddim_loop
+from msdnet.training.nn.grad_balance import GradBalance, loop_steps
 from msdnet.training.nn.rgfd import RGFD
 from msdnet.training.nn.unet import R2LDMStep, R2LDMUNet
 from msdnet.training.s2d import S2D
@@ -133,6 +134,13 @@ class StudentModel(_FrozenTeacherMixin):
         self.rgfd = RGFD(cfg) if cfg.use_rgfd else nn.Identity()
         self.adapter = NoiseAdapter(cfg) if cfg.use_adapter else ForwardNoising(cfg)
         self.step = DenoiserStep(LightDenoiser(cfg))  # what denoiser_step.onnx computes
+        w = cfg.losses
+        # per-loss gradient normalisation of the denoiser (training only; a persistent buffer)
+        self.grad_balance = (
+            GradBalance(w.denoiser_grad_ratio)
+            if w.denoiser_distill_grad and w.denoiser_grad_ratio > 0
+            else None
+        )
         self._attach_teacher(cfg, teacher)
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
         self.register_buffer("train_coeffs", torch.tensor(train_coeffs), persistent=False)
@@ -151,23 +159,37 @@ class StudentModel(_FrozenTeacherMixin):
         F_r^R itself when the config has no DGFD."""
         if not self.cfg.use_dgfd:
             return f_r
-        return ddim_loop(self._loop_step(), self.adapter(f_r, noise), coeffs)
+        return ddim_loop(self._loop_steps(len(coeffs)), self.adapter(f_r, noise), coeffs)
 
-    def _loop_step(self) -> Callable[..., Tensor]:
-        """The DDIM step the training loop runs. Unless ``losses.denoiser_distill_grad``, it uses
+    def _loop_steps(self, n_steps: int) -> nn.Module | list[Callable[..., Tensor]]:
+        """The DDIM steps the training loop runs. Unless ``losses.denoiser_distill_grad``, they use
         detached copies of the denoiser's weights: gradients still flow through the loop's
-        activations into the adapter and RGFD, but the denoiser learns from Eq. 10 alone."""
-        if not self.training or self.cfg.losses.denoiser_distill_grad:
+        activations into the adapter and RGFD, but the denoiser learns from Eq. 10 alone. With it,
+        ``denoiser_grad_steps`` / ``denoiser_grad_ratio`` truncate and normalise the loop's
+        gradient on the denoiser (training/nn/grad_balance.py)."""
+        w = self.cfg.losses
+        if not self.training:
             return self.step
-        state = {k: v.detach() for k, v in self.step.named_parameters()}
-        state.update(dict(self.step.named_buffers()))
-        return lambda *args: functional_call(self.step, state, args)
+        if not w.denoiser_distill_grad:
+            return loop_steps(self.step, n_steps, -1, None)  # every step detached
+        if w.denoiser_grad_steps <= 0 and self.grad_balance is None:
+            return self.step
+        return loop_steps(self.step, n_steps, w.denoiser_grad_steps, self.grad_balance)
+
+    def _eps_hat(self, x_t: Tensor, t: Tensor) -> Tensor:
+        """The denoiser on Eq. 10's input, through the gradient tap when normalising."""
+        if self.grad_balance is None or not self.training:
+            return self.denoiser(x_t, t)
+        ones = torch.ones((), dtype=torch.float32)
+        return functional_call(self.denoiser, self.grad_balance.tapped(self.denoiser, 0, ones), (x_t, t))
 
     def losses(self, batch: Batch) -> dict[str, Tensor]:
         """Eq. 15: {"loss", "recon", "distill_rec", "distill_diff", "diff", per-scale occ/off,
         "align" (the adapter's alignment loss, when ``losses.adapter_align > 0``), "gate" (mean
         adapter gate delta; a diagnostic, not in the loss)}."""
         w = self.cfg.losses
+        if self.grad_balance is not None and self.training:
+            self.grad_balance.fold()  # the previous step's gradient norms
         f_l, nonempty = self._teacher_latent(batch)
         f_r = self.reconstructed(batch.radar)
         zero = f_r.new_zeros(())
@@ -177,7 +199,9 @@ class StudentModel(_FrozenTeacherMixin):
             delta = self.adapter.gate(f_r)  # (B, C, 1, 1)
             # the loop sees the gate as a constant; F_r^R still trains through it
             f_d = ddim_loop(
-                self._loop_step(), self.adapter.mix(f_r, eps_m, delta.detach()), self.train_coeffs
+                self._loop_steps(len(self.train_coeffs)),
+                self.adapter.mix(f_r, eps_m, delta.detach()),
+                self.train_coeffs,
             )
             a_m = self.abar[self.cfg.diffusion.start_step]
             target = a_m.sqrt() * f_l + (1.0 - a_m).sqrt() * eps_m  # Eq. 9 at m, same eps
@@ -189,7 +213,11 @@ class StudentModel(_FrozenTeacherMixin):
         if self.cfg.use_dgfd:
             out["distill_diff"] = feature_distillation(f_d, f_l, nonempty, w.alpha, w.gamma)  # Eq. 14
             x_t, t, eps = self._noised(f_l)
-            out["diff"] = eps_loss(self.denoiser(x_t, t), eps)  # Eq. 10
+            out["diff"] = eps_loss(self._eps_hat(x_t, t), eps)  # Eq. 10
+            if self.grad_balance is not None:  # diagnostics: the loop / Eq. 10 gradient norms
+                d, loop = self.grad_balance.smoothed.tolist()
+                out["grad_ratio"] = f_r.new_tensor((loop / d) ** 0.5 if d > 0 else 0.0)
+                out["grad_scale"] = self.grad_balance.scale().to(f_r)
             if isinstance(self.adapter, NoiseAdapter):
                 with torch.no_grad():
                     out["gate"] = self.adapter.gate(f_r).mean()

@@ -7,6 +7,8 @@ exporter folds it into ``denoiser_step.onnx``, and the runtime only feeds ``step
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+
 import numpy as np
 import torch
 from torch import Tensor, nn
@@ -80,16 +82,25 @@ class DenoiserStep(nn.Module):
         return ddim_update(x_t, self.denoiser(x_t, t), abar_t, abar_prev)
 
 
-def ddim_loop(step: nn.Module, x: Tensor, coeffs: np.ndarray | Tensor, cond: Tensor | None = None) -> Tensor:
+def ddim_loop(
+    step: nn.Module | Sequence[Callable[..., Tensor]],
+    x: Tensor,
+    coeffs: np.ndarray | Tensor,
+    cond: Tensor | None = None,
+) -> Tensor:
     """Run DDIM steps in order; gradients flow through every step (training uses this).
 
     step: a :class:`DenoiserStep`, or an ``R2LDMStep`` when ``cond`` (B, C, H, W) is given (called
-    as ``step(x, cond, t, abar_t, abar_prev)``); x: (B, C, H, W) start sample; coeffs: (T_m, 3)
+    as ``step(x, cond, t, abar_t, abar_prev)``), or one such callable per row of ``coeffs`` (the
+    student's training loop, training/nn/grad_balance.py); x: (B, C, H, W) start sample; coeffs: (T_m, 3)
     float32 ``[t, abar_t, abar_prev]`` rows from ``runtime.ddim.step_coefficients``.
     Returns x after the last step, (B, C, H, W).
     """
     rows = torch.as_tensor(coeffs).to(device=x.device, dtype=torch.float32)  # (T_m, 3)
+    steps = step if isinstance(step, Sequence) else [step] * rows.shape[0]
+    if len(steps) != rows.shape[0]:
+        raise ValueError(f"{len(steps)} step callables for {rows.shape[0]} DDIM steps")
     for k in range(rows.shape[0]):
         t, a_t, a_prev = rows[k, 0:1], rows[k, 1:2], rows[k, 2:3]  # each (1,)
-        x = step(x, t, a_t, a_prev) if cond is None else step(x, cond, t, a_t, a_prev)
+        x = steps[k](x, t, a_t, a_prev) if cond is None else steps[k](x, cond, t, a_t, a_prev)
     return x
