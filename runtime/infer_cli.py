@@ -19,6 +19,10 @@ N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --work
 ``--trusted-key PUB`` refuses a model whose ``manifest.sig`` is missing or not by that key
 (``runtime/signing``).
 
+``--provider auto`` (``runtime/provider_auto``) runs each graph on whichever of onnxruntime and
+OpenVINO measured faster here, measured once per model, CPU and library versions and cached;
+``-v`` prints the picks and times. Its outputs are within the export tolerances of ``cpu``'s.
+
 ``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/infer_dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
 how much closer to the LiDAR the output is than the radar.
@@ -188,7 +192,14 @@ def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple
     type=click.Path(path_type=Path),
     help="Ed25519 public key (PEM): refuse a model not signed with it (msdnet-export --sign).",
 )
-@click.option("--provider", default="cpu", show_default=True, help="cpu, openvino, cuda or tensorrt.")
+@click.option(
+    "--provider",
+    default="cpu",
+    show_default=True,
+    help="cpu (byte-reproducible), auto (per graph the faster of onnxruntime and OpenVINO), openvino, "
+    "cuda or tensorrt.",
+)
+@click.option("-v", "--verbose", is_flag=True, help="With --provider auto: print each graph's engine.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
 @click.option(
     "--dataset",
@@ -243,6 +254,7 @@ def main(
     rerun: Path | None,
     layout: str | None,
     bin_columns: str | None,
+    verbose: bool = False,
 ) -> None:
     """Densify radar point clouds with an exported MSDNet (or R2LDM) model."""
     from msdnet.runtime.artifact import load_artifact
@@ -268,6 +280,7 @@ def main(
             )
         from msdnet.runtime.rosbag_io import bag_mode
 
+        _announce_auto(artifact, provider, threads, verbose)
         start = time.perf_counter()
         rows = bag_mode(artifact, provider, threads, inputs, out, topic, fields, bag_storage, rerun, opts)
         text, code = _summary(rows, time.perf_counter() - start)
@@ -283,6 +296,7 @@ def main(
     if dataset is not None:
         if skip_existing:
             raise MsdnetError("--skip-existing", "only applies to file mode, not --dataset")
+        _announce_auto(artifact, provider, threads, verbose)
         _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, opts)
         if rerun is not None:
             from msdnet.runtime.rerun_log import log_dataset
@@ -303,6 +317,7 @@ def main(
     workers = clamp_workers(workers, len(jobs))
     if threads is None and workers > 1:
         threads = max(1, usable_cores() // workers)  # outputs do not depend on it
+    auto_pipe = _announce_auto(artifact, provider, threads, verbose)  # workers then read its cache
     bar = tqdm(total=len(jobs), unit="file", desc="msdnet-infer", disable=None)
     rows: list[dict[str, Any]] = []
     if ray_address is not None:
@@ -312,7 +327,8 @@ def main(
     elif workers == 1:
         from msdnet.runtime.pipeline import Pipeline
 
-        _WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), opts=opts)
+        pipe = auto_pipe or Pipeline(artifact, provider=provider, threads=threads)
+        _WORKER.update(pipe=pipe, opts=opts)
         for job in jobs:
             rows.append(_run_one(*job))
             bar.update()
@@ -340,6 +356,19 @@ def main(
     click.echo(text)
     if code:
         raise SystemExit(code)
+
+
+def _announce_auto(artifact: Any, provider: str, threads: int | None, verbose: bool) -> Any:
+    """``--provider auto``: pick each graph's engine once, here (measured, or read from the cache the
+    workers then read too); ``-v`` prints the picks. -> that Pipeline, None for other providers."""
+    if provider.strip().lower() != "auto":
+        return None
+    from msdnet.runtime.pipeline import Pipeline
+
+    pipe = Pipeline(artifact, provider=provider, threads=threads)
+    if verbose:
+        click.echo("\n".join(pipe.auto.lines()), err=True)
+    return pipe
 
 
 def _dataset_mode(

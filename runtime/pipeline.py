@@ -29,7 +29,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import onnxruntime as ort
@@ -42,8 +42,11 @@ from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.kernels import warmup as numba_warmup
 from msdnet.runtime.pointcloud import PointCloud
 from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
-from msdnet.runtime.session import create_session, device_of
+from msdnet.runtime.session import AUTO, create_session, device_of
 from msdnet.runtime.voxelize import in_range_mask, voxelize
+
+if TYPE_CHECKING:
+    from msdnet.runtime.provider_auto import AutoReport
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,15 +71,16 @@ class Pipeline:
 
     def __init__(self, artifact: Artifact, provider: str = "cpu", threads: int | None = None):
         self.artifact = artifact  # checked manifest + graph bytes
-        self.provider = provider  # short provider name (cpu, cuda, tensorrt)
+        self.provider = provider  # short provider name (cpu, auto, openvino, cuda, tensorrt)
         self.kind = artifact.kind  # "student" or "r2ldm"
         self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
         self.sessions: dict[str, ort.InferenceSession] = {}
+        threads_of: dict[str, int | None] = {}  # graph file -> intra-op threads
         for spec in artifact.specs:
             # onnxruntime's CPU DeformConv sums in an order that depends on the thread count
             # (7e-7 apart on sim-lite); the adapter runs once per scan (~2 ms), so it always
             # gets one thread and the output bytes do not depend on ``threads``.
-            n = 1 if spec.file == onnx_spec.RGFD_ADAPTER.file else threads
+            n = threads_of[spec.file] = 1 if spec.file == onnx_spec.RGFD_ADAPTER.file else threads
             sess = create_session(artifact.graphs[spec.file], spec.file, provider, n)
             names_in = tuple(i.name for i in sess.get_inputs())
             names_out = tuple(o.name for o in sess.get_outputs())
@@ -90,6 +94,12 @@ class Pipeline:
         student = self.kind == "student"
         self._step_spec = onnx_spec.DENOISER_STEP if student else onnx_spec.R2LDM_STEP
         self._allocate(device_of(provider))
+        self.auto: AutoReport | None = None  # provider "auto": each graph's engine, its times and why
+        if provider.strip().lower() == AUTO:
+            from msdnet.runtime.provider_auto import choose_engines
+
+            self.auto = choose_engines(self, threads_of)  # may swap sessions for OpenVINO's
+            self._allocate(device_of(provider))  # so bind the buffers again
 
     @classmethod
     def from_dir(cls, path: str | Path, provider: str = "cpu", threads: int | None = None) -> Pipeline:
@@ -228,12 +238,13 @@ class Pipeline:
             )
         return np.ascontiguousarray(arr, dtype=np.float32)
 
-    def _encode(self, pts: np.ndarray) -> tuple[int, int]:
-        """Voxelize ``pts`` (N, C) and run the encoder into F^S; -> (points in grid, voxels)."""
+    def encoder_feeds(self, pts: np.ndarray) -> tuple[dict[str, np.ndarray], int, int]:
+        """Voxelize ``pts`` (N, C) and build every encoder rulebook -> (``encoder.onnx`` inputs,
+        points in grid, voxels); no inputs when there is no voxel."""
         vox = voxelize(pts, self.artifact.grid, self.artifact.inputs.max_voxels)
-        n_vox = int(vox.coords.shape[0])
+        n_vox, in_grid = int(vox.coords.shape[0]), pts.shape[0] - vox.dropped_out_of_range
         if n_vox == 0:
-            return pts.shape[0] - vox.dropped_out_of_range, 0
+            return {}, in_grid, 0
         coords = batch_coords([vox.coords])  # (V_0, 4) int32 [b = 0, z, y, x]
         rb = build_encoder_rulebooks(coords, self.artifact.grid.shape_zyx, onnx_spec.NUM_DOWN)
         feeds = {"voxel_features": vox.features, "subm_rules_0": rb.subm[0]}
@@ -241,12 +252,19 @@ class Pipeline:
             feeds[f"down_rules_{level}"] = rb.down[level - 1]
             feeds[f"subm_rules_{level}"] = rb.subm[level]
         feeds["bev_coords"] = rb.coords[onnx_spec.NUM_DOWN]
+        dtypes = {name: np.float32 if name == "voxel_features" else np.int64 for name in feeds}
+        return {k: np.ascontiguousarray(v, dtype=dtypes[k]) for k, v in feeds.items()}, in_grid, n_vox
+
+    def _encode(self, pts: np.ndarray) -> tuple[int, int]:
+        """Voxelize ``pts`` (N, C) and run the encoder into F^S; -> (points in grid, voxels)."""
+        feeds, in_grid, n_vox = self.encoder_feeds(pts)
+        if n_vox == 0:
+            return in_grid, 0
         self._timer("voxelize")
         for name, arr in feeds.items():
-            dtype = np.float32 if name == "voxel_features" else np.int64
-            self._enc_bind.bind_cpu_input(name, np.ascontiguousarray(arr, dtype=dtype))
+            self._enc_bind.bind_cpu_input(name, arr)
         self.sessions[onnx_spec.ENCODER.file].run_with_iobinding(self._enc_bind)
-        return pts.shape[0] - vox.dropped_out_of_range, n_vox
+        return in_grid, n_vox
 
     def _timer(self, stage: str) -> None:
         now = time.perf_counter()

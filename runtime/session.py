@@ -1,5 +1,6 @@
 """Graph sessions: onnxruntime execution providers by short name, intra-op threads, no spinning;
-and ``openvino``: OpenVINO runs every graph it can load, onnxruntime's CPU provider the rest.
+and ``openvino``: OpenVINO runs every graph it can load, onnxruntime's CPU provider the rest;
+``auto``: per graph, whichever of the two measured faster here (``runtime.provider_auto``).
 
 onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve the numba
 voxelizer between graph calls, so spinning is always off (``session.intra_op.allow_spinning``).
@@ -22,6 +23,7 @@ PROVIDERS: dict[str, str] = {
     "tensorrt": "TensorrtExecutionProvider",
 }
 OPENVINO = "openvino"  # not an onnxruntime provider: runtime.openvino_session (the [openvino] extra)
+AUTO = "auto"  # per graph, the faster of onnxruntime's CPU provider and OpenVINO (runtime.provider_auto)
 # Graphs ``openvino`` runs with OpenVINO (f32, same threads): the heads, where it was faster in every
 # msdnet-bench latency run (docs/results/latency-*: sim-lite 2.5-2.75x, paper-width 1.5x, paper 1.0x).
 # The encoder (onnxruntime as fast or faster in 3 of 4 runs) and the step graph (50 calls a frame:
@@ -31,10 +33,10 @@ OPENVINO_GRAPHS = ("recon_head.onnx", "recon_head_sparse.onnx")
 
 
 def available_providers() -> list[str]:
-    """Short names of the providers this onnxruntime build offers (``cpu`` always)."""
+    """Short names of the providers this onnxruntime build offers (``cpu`` and ``auto`` always)."""
     have = set(ort.get_available_providers())
     names = [name for name, full in PROVIDERS.items() if full in have]
-    return names + ([OPENVINO] if importlib.util.find_spec("openvino") is not None else [])
+    return names + ([OPENVINO] if importlib.util.find_spec("openvino") is not None else []) + [AUTO]
 
 
 def resolve_providers(provider: str) -> list[str]:
@@ -47,7 +49,7 @@ def resolve_providers(provider: str) -> list[str]:
     have = available_providers()
     if name == OPENVINO and name not in have:
         raise MsdnetError("provider", "openvino needs the OpenVINO runtime: pip install 'msdnet[openvino]'")
-    if name == OPENVINO:  # the graphs OpenVINO cannot load run on onnxruntime's CPU provider
+    if name in (OPENVINO, AUTO):  # the graphs OpenVINO cannot load (or loses) run on the CPU provider
         return [PROVIDERS["cpu"]]
     if name not in PROVIDERS or name not in have:
         raise MsdnetError(
@@ -64,7 +66,7 @@ def resolve_providers(provider: str) -> list[str]:
 
 def device_of(provider: str) -> str:
     """OrtValue device type for buffers that live next to ``provider``'s kernels."""
-    return "cpu" if provider.strip().lower() in ("cpu", OPENVINO) else "cuda"
+    return "cpu" if provider.strip().lower() in ("cpu", OPENVINO, AUTO) else "cuda"
 
 
 def session_options(threads: int | None = None) -> ort.SessionOptions:
