@@ -16,6 +16,15 @@ by the caller) that connection is used. Ray >= 2.59 starts clusters with token a
 a client then needs ``RAY_AUTH_MODE=token`` (the token comes from ``~/.ray/auth_token`` or
 ``RAY_AUTH_TOKEN``).
 
+Staying on the machine: a local instance (``local``) listens on 127.0.0.1 only (Ray otherwise
+rewrites a loopback address to the machine's interface address), with the dashboard off, usage
+stats off (``RAY_USAGE_STATS_ENABLED=0`` unless set) and no cloud-metadata probe: Ray's head
+processes see a private ``HOME`` holding a ``ray_bootstrap_config.yaml`` that names the local
+provider (without one, Ray's usage module asks 169.254.169.254 and metadata.google.internal
+which cloud it runs on); the workers keep the real ``HOME``. A loopback ADDRESS
+(``127.0.0.1:6379``) is kept as given. An ADDRESS where nothing answers fails after ``timeout``
+seconds (``--ray-timeout``, default 30) in one line naming it, instead of Ray's endless retries.
+
 A worker that dies is not retried (actor restarts and task retries are off): the run stops, every
 file without a result is reported as failed ("no result, the Ray run stopped (ActorDiedError..."),
 and the temporary file a killed writer leaves next to its output is removed
@@ -24,10 +33,16 @@ and the temporary file a killed writer leaves next to its output is removed
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
+import shutil
+import socket
+import tempfile
+import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +52,12 @@ from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io import clean_stale_temps
 
 DEFAULT_THREADS = 1  # intra-op threads per actor when --threads is not given
+DEFAULT_TIMEOUT_S = 30.0  # --ray-timeout: how long an ADDRESS may take to answer
+LOOPBACK = "127.0.0.1"
+LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
+CLIENT_PORT = 10001  # Ray Client's default port (ray://HOST)
+BOOTSTRAP_CONFIG = "ray_bootstrap_config.yaml"  # read from ~ by Ray's usage module (dashboard)
+LOCAL_PROVIDER = "# msdnet: a local Ray instance (no cloud to ask about)\nprovider:\n  type: local\n"
 
 
 class _InferActor:
@@ -54,26 +75,139 @@ class _InferActor:
         return {"row": np.array([json.dumps(r) for r in rows])}
 
 
-def _connect(address: str) -> bool:
-    """Connect to Ray unless already connected; -> whether this call connected (and must shut down)."""
+def _ray() -> Any:
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # before Ray starts anything
     try:
         import ray
     except ImportError:
         raise MsdnetError("--ray", "needs Ray Data: pip install 'msdnet[ray]'") from None
-    if ray.is_initialized():
-        return False
+    return ray
+
+
+@contextlib.contextmanager
+def _loopback_kept(ray: Any) -> Iterator[None]:
+    """While connecting: Ray keeps 127.0.0.1 as 127.0.0.1 (its "no cluster" setting, which makes
+    this node's address the loopback one) in this process and in the processes it starts."""
+    constants = ray._private.ray_constants
+    var = constants.ENABLE_RAY_CLUSTERS_ENV_VAR  # RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER
+    before, flag = os.environ.get(var), constants.ENABLE_RAY_CLUSTER
+    os.environ[var], constants.ENABLE_RAY_CLUSTER = "0", False
     try:
-        ray.init(
-            address=address,  # "local": always a new instance, never a running cluster
-            logging_level=logging.ERROR,
-            log_to_driver=False,
-            include_dashboard=False,
-        )
+        yield
+    finally:
+        constants.ENABLE_RAY_CLUSTER = flag
+        if before is None:
+            os.environ.pop(var, None)
+        else:
+            os.environ[var] = before
+
+
+def _init_options() -> dict[str, Any]:
+    return {"logging_level": logging.ERROR, "log_to_driver": False, "include_dashboard": False}
+
+
+@contextlib.contextmanager
+def local_instance(num_cpus: int | None = None) -> Iterator[None]:
+    """Start a Ray instance on this machine that stays on it (module docstring), shut it down on exit."""
+    ray = _ray()
+    home = Path(tempfile.mkdtemp(prefix="msdnet-ray-home-"))
+    real_home = os.environ.get("HOME")
+    try:
+        (home / BOOTSTRAP_CONFIG).write_text(LOCAL_PROVIDER)
+        workers = {"env_vars": {"HOME": real_home}} if real_home else None
+        os.environ["HOME"] = str(home)  # what the head processes started now inherit
+        try:
+            with _loopback_kept(ray):
+                ray.init(
+                    address="local",
+                    _node_ip_address=LOOPBACK,
+                    num_cpus=num_cpus,
+                    runtime_env=workers,
+                    **_init_options(),
+                )
+        finally:
+            if real_home is None:
+                os.environ.pop("HOME", None)
+            else:
+                os.environ["HOME"] = real_home
+        yield
+    except MsdnetError:
+        raise
+    except Exception as err:
+        if ray.is_initialized():
+            raise
+        raise MsdnetError("--ray", f"cannot start a local Ray instance: {_cause(err)}") from None
+    finally:
+        ray.shutdown()
+        shutil.rmtree(home, ignore_errors=True)
+
+
+def _cause(err: BaseException) -> str:
+    return " ".join(str(err).split())[:200] or type(err).__name__
+
+
+def _host_port(ray: Any, address: str) -> tuple[str, int] | None:
+    """The (host, port) ``address`` makes Ray connect to first; None when it cannot tell."""
+    addr = address
+    if addr == "auto":
+        try:
+            addr = ray._private.services.get_ray_address_from_environment("auto", None)
+        except Exception as err:  # no running instance found
+            raise MsdnetError("--ray", f"no Ray cluster found for 'auto': {_cause(err)}") from None
+    default = CLIENT_PORT if addr.startswith("ray://") else None
+    host, _, port = addr.removeprefix("ray://").rpartition(":")
+    if not host:
+        host, port = port, str(default or "")
+    host = host.strip("[]")
+    return (host, int(port)) if host and port.isdigit() else None
+
+
+def _wait_for(address: str, host: str, port: int, timeout: float) -> None:
+    """Return once something accepts a TCP connection at (host, port); MsdnetError after ``timeout`` s."""
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        try:
+            with socket.create_connection((host, port), timeout=max(0.1, min(2.0, left))):
+                return
+        except OSError as err:
+            if time.monotonic() + 0.5 >= deadline:
+                where = address if address == f"{host}:{port}" else f"{address} ({host}:{port})"
+                raise MsdnetError(
+                    "--ray",
+                    f"nothing answers at {where} within {timeout:g} s ({err.strerror or _cause(err)}); "
+                    "start the cluster (ray start --head) or check the address (--ray-timeout: wait longer)",
+                ) from None
+        time.sleep(0.5)
+
+
+@contextlib.contextmanager
+def _connected(address: str, timeout: float) -> Iterator[None]:
+    """Use this process's Ray connection, a new local instance, or the cluster at ``address``."""
+    ray = _ray()
+    if ray.is_initialized():
+        yield
+        return
+    if address == "local":  # always a new instance, never a running cluster
+        with local_instance():
+            yield
+        return
+    target = _host_port(ray, address)
+    if target is not None:
+        _wait_for(address, *target, timeout)
+    loopback = target is not None and target[0] in LOOPBACK_HOSTS
+    try:
+        with _loopback_kept(ray) if loopback else contextlib.nullcontext():
+            ray.init(
+                address=address, **({"_node_ip_address": LOOPBACK} if loopback else {}), **_init_options()
+            )
     except Exception as err:  # ConnectionError, ValueError, RuntimeError... from ray.init
-        cause = " ".join(str(err).split())[:200]
         hint = "; a cluster with token authentication also needs RAY_AUTH_MODE=token here (and its token)"
-        raise MsdnetError("--ray", f"cannot connect to {address!r}: {cause}{hint}") from None
-    return True
+        raise MsdnetError("--ray", f"cannot connect to {address!r}: {_cause(err)}{hint}") from None
+    try:
+        yield
+    finally:
+        ray.shutdown()
 
 
 def run_ray(
@@ -84,49 +218,58 @@ def run_ray(
     jobs: Sequence[tuple[str, str]],
     opts: dict[str, Any],
     bar: Any = None,
+    timeout: float = DEFAULT_TIMEOUT_S,
 ) -> list[dict[str, Any]]:
-    """Run every (src, dst) job on Ray actors; -> rows in job order (as ``infer_cli._run_one``)."""
-    started = _connect(address)
+    """Run every (src, dst) job on Ray actors; -> rows in job order (as ``infer_cli._run_one``).
+    ``timeout``: seconds ``address`` may take to answer (not used for ``local``)."""
+    with _connected(address, timeout):
+        return _run(artifact, provider, threads, jobs, opts, bar)
+
+
+def _run(
+    artifact: Any,
+    provider: str,
+    threads: int | None,
+    jobs: Sequence[tuple[str, str]],
+    opts: dict[str, Any],
+    bar: Any,
+) -> list[dict[str, Any]]:
     import ray
     import ray.data
 
+    ctx = ray.data.DataContext.get_current()
+    ctx.enable_progress_bars = False
+    ctx.print_on_execution_start = False
+    quiet = logging.getLogger("ray.data")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)  # a dead actor is reported in the summary, not as a traceback
+    threads = threads or DEFAULT_THREADS
+    cpus = float(ray.cluster_resources().get("CPU", 1.0))
+    actors = max(1, min(len(jobs), int(cpus // threads)))
+    items = [{"src": s, "dst": d} for s, d in jobs]
+    with warnings.catch_warnings():  # max_restarts=0 is how Ray Data turns restarts off
+        warnings.filterwarnings("ignore", message=".*ray_remote_args.*deprecated")
+        ds = ray.data.from_items(items, override_num_blocks=len(items)).map_batches(
+            _InferActor,
+            batch_size=1,
+            compute=ray.data.ActorPoolStrategy(min_size=1, max_size=actors),
+            fn_constructor_args=(artifact, provider, threads, opts),
+            num_cpus=threads,
+            max_restarts=0,
+            max_task_retries=0,
+        )
+    done: dict[str, dict[str, Any]] = {}
+    cause = ""
     try:
-        ctx = ray.data.DataContext.get_current()
-        ctx.enable_progress_bars = False
-        ctx.print_on_execution_start = False
-        quiet = logging.getLogger("ray.data")
-        level = quiet.level
-        quiet.setLevel(logging.CRITICAL)  # a dead actor is reported in the summary, not as a traceback
-        threads = threads or DEFAULT_THREADS
-        cpus = float(ray.cluster_resources().get("CPU", 1.0))
-        actors = max(1, min(len(jobs), int(cpus // threads)))
-        items = [{"src": s, "dst": d} for s, d in jobs]
-        with warnings.catch_warnings():  # max_restarts=0 is how Ray Data turns restarts off
-            warnings.filterwarnings("ignore", message=".*ray_remote_args.*deprecated")
-            ds = ray.data.from_items(items, override_num_blocks=len(items)).map_batches(
-                _InferActor,
-                batch_size=1,
-                compute=ray.data.ActorPoolStrategy(min_size=1, max_size=actors),
-                fn_constructor_args=(artifact, provider, threads, opts),
-                num_cpus=threads,
-                max_restarts=0,
-                max_task_retries=0,
-            )
-        done: dict[str, dict[str, Any]] = {}
-        cause = ""
-        try:
-            for item in ds.iter_rows():
-                row = json.loads(item["row"])
-                done[row["file"]] = row
-                if bar is not None:
-                    bar.update()
-        except Exception as err:  # a dead actor, a lost node: report what did not finish
-            cause = f"{type(err).__name__}: {(str(err).strip().splitlines() or [''])[0][:160]}"
-        finally:
-            quiet.setLevel(level)
+        for item in ds.iter_rows():
+            row = json.loads(item["row"])
+            done[row["file"]] = row
+            if bar is not None:
+                bar.update()
+    except Exception as err:  # a dead actor, a lost node: report what did not finish
+        cause = f"{type(err).__name__}: {(str(err).strip().splitlines() or [''])[0][:160]}"
     finally:
-        if started:
-            ray.shutdown()
+        quiet.setLevel(level)
     missing = [(src, dst) for src, dst in jobs if src not in done]
     for folder in {Path(dst).parent for _, dst in missing}:
         clean_stale_temps(folder)  # the temporary file of a killed writer (its process is gone)

@@ -2,6 +2,14 @@
 
 from __future__ import annotations
 
+import os
+
+# onnxruntime telemetry off for every test and every process a test starts, before anything imports
+# onnxruntime (msdnet.runtime sets the same; this covers tests that import onnxruntime directly).
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+os.environ.setdefault("ORT_TELEMETRY_DISABLED", "1")
+os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+
 from pathlib import Path
 
 import pytest
