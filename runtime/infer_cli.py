@@ -223,6 +223,13 @@ def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple
     metavar="[ADDRESS]",
     help="Run the files on Ray actors (runtime/ray_batch): local, auto or ray://HOST:PORT.",
 )
+@click.option(
+    "--ray-timeout",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=30.0,
+    show_default=True,
+    help="With --ray ADDRESS: seconds it may take to answer.",
+)
 @click.option("--rerun", type=click.Path(path_type=Path), help="Also write a Rerun recording FILE.rrd.")
 @click.option(
     "--layout", type=click.Choice(list(LAYOUTS)), help=".bin columns (runtime/layouts) [the model's data]."
@@ -251,6 +258,7 @@ def main(
     fields: tuple[str, ...],
     bag_storage: str | None,
     ray_address: str | None,
+    ray_timeout: float,
     rerun: Path | None,
     layout: str | None,
     bin_columns: str | None,
@@ -273,6 +281,10 @@ def main(
     opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
     opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
     opts["bin_columns"], _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
+    if rerun is not None:
+        from msdnet.runtime.rerun_log import check_path
+
+        check_path(rerun)  # writable .rrd, checked before any work like --out
     if topic is not None:
         if dataset or ray_address or png or skip_existing or workers > 1:
             raise MsdnetError(
@@ -292,6 +304,8 @@ def main(
         dataset or ray_address not in ("local", "auto") and Path(ray_address).exists()
     ):
         raise MsdnetError("--ray", f"takes a cluster address, not {ray_address!r}; put --ray after INPUTS")
+    if ray_address is not None and workers > 1:
+        raise MsdnetError("--workers", "not with --ray (Ray runs one actor per --threads CPUs)")
     check_out(out, inputs)
     if dataset is not None:
         if skip_existing:
@@ -323,7 +337,7 @@ def main(
     if ray_address is not None:
         from msdnet.runtime.ray_batch import run_ray
 
-        rows = run_ray(ray_address, artifact, provider, threads, jobs, opts, bar)
+        rows = run_ray(ray_address, artifact, provider, threads, jobs, opts, bar, ray_timeout)
     elif workers == 1:
         from msdnet.runtime.pipeline import Pipeline
 

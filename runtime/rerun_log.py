@@ -12,7 +12,10 @@ stamp):
 
 File and dataset modes log after the run from the written outputs (so ``--workers`` and
 ``--ray`` runs are recorded the same way); the bag mode logs each message as it goes. The file
-is written under a temporary name and renamed when complete. Needs ``rerun-sdk`` (``[rerun]``).
+is written under a temporary name (``io.temp_name``: pid-tagged, so the next run removes a killed
+run's) and renamed when complete; a failure drops it. ``check_path`` refuses a path that cannot
+be written (not ``.rrd``, a folder, a read-only place) before any work. Needs ``rerun-sdk``
+(``[rerun]``).
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io import DENSE_COLUMNS, read_cloud
+from msdnet.runtime.io import DENSE_COLUMNS, clean_stale_temps, read_cloud, temp_name, write_error
 
 RADAR_RGB = (214, 39, 40)
 LIDAR_RGB = (150, 150, 150)
@@ -42,6 +45,26 @@ def confidence_colors(confidence: np.ndarray) -> np.ndarray:
     return np.round(rgba[:, :3] * 255.0).astype(np.uint8)
 
 
+def check_path(path: str | Path) -> Path:
+    """``--rerun`` before any work: a ``.rrd`` path that is not a folder, in a folder where a
+    file can be created (one probe file, removed); a killed run's temporary recordings there
+    are removed. -> the path; MsdnetError naming it otherwise."""
+    target = Path(path)
+    if target.suffix != ".rrd":
+        raise MsdnetError(target, "--rerun writes a .rrd file; name it FILE.rrd")
+    if target.is_dir():
+        raise MsdnetError(target, "--rerun is a folder; name a FILE.rrd")
+    probe = target.parent / temp_name(target.name)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        os.unlink(probe)
+    except OSError as err:
+        raise write_error(target, err) from None
+    clean_stale_temps(target.parent)
+    return target
+
+
 class RerunLog:
     """An open recording; ``frame(...)`` per input, ``close()`` renames it into place."""
 
@@ -51,13 +74,15 @@ class RerunLog:
         except ImportError:
             raise MsdnetError("--rerun", "needs rerun-sdk: pip install 'msdnet[rerun]'") from None
         self.rr = rr
-        self.path = Path(path)
-        if self.path.suffix != ".rrd":
-            raise MsdnetError(self.path, "--rerun writes a .rrd file; name it FILE.rrd")
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp")
+        self.path = check_path(path)
+        self.tmp = self.path.parent / temp_name(self.path.name)
         self.rec = rr.RecordingStream(app)
-        self.rec.save(str(self.tmp))
+        try:
+            self.rec.save(str(self.tmp))
+        except Exception as err:
+            self.abort()
+            cause = " ".join(str(err).split())[:200]
+            raise MsdnetError(self.path, f"cannot write the recording: {cause}") from None
         self.rec.log("/", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     def frame(
@@ -87,10 +112,15 @@ class RerunLog:
             rec.log("lidar", rr.Points3D(np.asarray(lidar, np.float32)[:, :3], colors=LIDAR_RGB, radii=0.02))
 
     def close(self) -> Path:
-        """Flush, close and rename the recording into place; -> its path."""
-        self.rec.flush()
-        self.rec.disconnect()
-        os.replace(self.tmp, self.path)
+        """Flush, close and rename the recording into place; -> its path. A failure (the path
+        became a folder, the disk is full) drops the temporary file and is one MsdnetError."""
+        try:
+            self.rec.flush()
+            self.rec.disconnect()
+            os.replace(self.tmp, self.path)
+        except OSError as err:
+            self.abort()
+            raise write_error(self.path, err) from None
         return self.path
 
     def abort(self) -> None:
