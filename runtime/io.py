@@ -4,7 +4,8 @@ Reading checks sizes before allocating (a ``.bin`` must be a whole number of row
 ``max_points`` rows per file), drops rows with NaN/Inf and counts them in
 ``PointCloud.dropped_nonfinite``, and turns every kind of bad input into one
 ``MsdnetError(path, cause)``. Values beyond the float32 range count as non-finite (they would
-become Inf). A PCD whose header claims more (or fewer) points than it holds is refused. An empty
+become Inf). A PCD whose header claims more (or fewer) points than it holds is refused, and so is
+a PLY whose body holds more vertices than its header states. An empty
 ``.bin`` (what a scan with no output point writes) reads back as zero rows when its layout is
 known (``columns=``, ``kind=`` or the path).
 
@@ -259,15 +260,39 @@ def _read_pcd(path: Path, size: int, kind: str | None, cols, max_points: int):
 def _read_ply(path: Path, size: int, kind: str | None, cols, max_points: int):
     with open(path, "rb") as f:
         header = plyfile.PlyData._parse_header(f)  # header only: element counts
+        body_start = f.tell()
     if "vertex" not in header:
         raise MsdnetError(path, "PLY file has no 'vertex' element")
     _too_many(path, header["vertex"].count, max_points)
+    _ply_holds_no_more(path, size, header, body_start)
     vertex = plyfile.PlyData.read(str(path))["vertex"]
     props = [pr.name for pr in vertex.properties if not isinstance(pr, plyfile.PlyListProperty)]
     data = vertex.data
     fields = [np.asarray(data[n], dtype=np.float64) for n in props]
     names = tuple(canonical_column(n) for n in props)
     return np.stack(fields, axis=1).reshape(len(data), len(names)), names  # (N, C)
+
+
+def _ply_holds_no_more(path: Path, size: int, header: plyfile.PlyData, body_start: int) -> None:
+    """Refuse a PLY whose body holds more vertices than its header states (plyfile reads the
+    stated count and ignores the rest): text, by non-blank lines; binary, by bytes (fixed-size
+    properties only)."""
+    elements, count = header.elements, header["vertex"].count
+    others = [e for e in elements if e.name != "vertex"]
+    if header.text:
+        with open(path, "rb") as f:
+            f.seek(body_start)
+            lines = sum(1 for line in f if line.strip())
+        held = lines - sum(e.count for e in others)
+    else:
+        if any(isinstance(pr, plyfile.PlyListProperty) for e in elements for pr in e.properties):
+            return
+        row = {e.name: sum(np.dtype(pr.val_dtype).itemsize for pr in e.properties) for e in elements}
+        if not row["vertex"]:
+            return
+        held = (size - body_start - sum(e.count * row[e.name] for e in others)) // row["vertex"]
+    if held > count:
+        raise MsdnetError(path, f"header states {count} vertices, the body holds {held}")
 
 
 TEMP_PREFIX = ".msdnet-"  # every temporary file or folder msdnet writes starts with this

@@ -302,6 +302,8 @@ class Pipeline:
         thr = self.artifact.threshold if threshold is None else float(threshold)
         if not 0.0 < thr < 1.0:
             raise MsdnetError("threshold", f"must be in (0, 1), got {thr}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed: must be an integer >= 0 (the noise generator's seed), got {seed!r}")
         coeffs = self.coefficients(steps)
         self._timings: dict[str, float] = {}
         self._t = start = time.perf_counter()

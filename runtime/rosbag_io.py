@@ -14,13 +14,21 @@ v_r_compensated``) reads the message field of the same canonical name (``RCS`` -
 ``--field model_column=msg_field`` overrides one. A field missing from the first message is a
 one-line error naming the topic and the field; a later message that cannot be read or run is
 counted and reported in the summary, and the rest go on. Rows with a non-finite value in a model
-column are dropped (as the file readers drop them). The bag is written under a temporary name
-next to ``OUT_BAG`` and renamed when complete; an existing ``OUT_BAG`` is refused.
+column are dropped (as the file readers drop them). Two fields of one name (or of one canonical
+name feeding a column) are refused, naming the topic and the field; a message of more than
+``io.MAX_POINTS`` points is refused as a file that size is, naming the message.
+
+Output: written under a temporary name next to ``OUT_BAG`` (``io.temp_name``, pid-tagged: the
+next run removes a killed run's) and renamed when complete; an existing ``OUT_BAG`` is refused,
+and so is a place that cannot be written, before any work. A write that fails (read-only, disk
+full, in either storage) is one line naming ``OUT_BAG`` and the cause, with nothing left behind.
+A ``metadata.yaml`` that is broken or not a rosbag2 one is one line naming the bag.
 """
 
 from __future__ import annotations
 
 import shutil
+import sqlite3
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -29,8 +37,9 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from msdnet.runtime.bag_guards import bag_write_error, prepare_bag_out, storage_of
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io import DENSE_COLUMNS, cloud_from_array, temp_name
+from msdnet.runtime.io import DENSE_COLUMNS, MAX_POINTS, cloud_from_array, temp_name, write_error
 from msdnet.runtime.pointcloud import canonical_column
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
@@ -68,12 +77,27 @@ def parse_field_map(specs: Sequence[str], columns: Sequence[str]) -> dict[str, s
 
 def resolve_fields(msg: Any, columns: Sequence[str], mapping: dict[str, str], topic: str) -> list[Any]:
     """The PointField of ``msg`` feeding each model column; MsdnetError naming topic and field."""
+    names = [f.name for f in msg.fields]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise MsdnetError(
+            topic, f"PointCloud2 has two fields named {twice[0]!r}: which one is meant is unknown"
+        )
     by_name = {f.name: f for f in msg.fields}
-    by_canon = {canonical_column(f.name): f for f in msg.fields}
+    by_canon: dict[str, list[Any]] = {}
+    for f in msg.fields:
+        by_canon.setdefault(canonical_column(f.name), []).append(f)
     have = " ".join(by_name) or "none"
     picked = []
     for col in columns:
-        field = by_name.get(mapping[col]) if col in mapping else by_canon.get(col)
+        same = by_canon.get(col, [])
+        if col not in mapping and len(same) > 1:
+            raise MsdnetError(
+                topic,
+                f"PointCloud2 fields {' and '.join(repr(f.name) for f in same)} both match model column "
+                f"{col!r}; pick one with --field {col}=FIELD",
+            )
+        field = by_name.get(mapping[col]) if col in mapping else (same[0] if same else None)
         if field is None:
             name = mapping.get(col, col)
             raise MsdnetError(
@@ -87,10 +111,15 @@ def resolve_fields(msg: Any, columns: Sequence[str], mapping: dict[str, str], to
     return picked
 
 
-def pointcloud2_to_array(msg: Any, fields: Sequence[Any]) -> np.ndarray:
-    """PointCloud2 ``msg`` -> (N, len(fields)) float32, N = height * width, row padding skipped."""
+def pointcloud2_to_array(
+    msg: Any, fields: Sequence[Any], label: str = "PointCloud2", max_points: int = MAX_POINTS
+) -> np.ndarray:
+    """PointCloud2 ``msg`` -> (N, len(fields)) float32, N = height * width, row padding skipped;
+    MsdnetError naming ``label`` when N exceeds ``max_points`` (the file readers' cap)."""
     order = ">" if msg.is_bigendian else "<"
     step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
+    if width * height > max_points:
+        raise MsdnetError(label, f"{width * height} points exceeds the cap of {max_points} per scan")
     row = int(msg.row_step) if height > 1 else width * step
     data = np.asarray(msg.data, dtype=np.uint8)
     if width * step > row or data.size < height * row:
@@ -131,13 +160,6 @@ def make_pointcloud2(store: Any, points: np.ndarray, names: Sequence[str], stamp
     return types[POINTCLOUD2](header, 1, len(pts), fields, False, step, step * len(pts), data, True)
 
 
-def _storage_of(bag: Path) -> str:
-    from ruamel.yaml import YAML  # a rosbags dependency
-
-    meta = YAML(typ="safe").load((bag / "metadata.yaml").read_text())
-    return str(meta["rosbag2_bagfile_information"]["storage_identifier"])
-
-
 def _check_paths(inputs: Sequence[Path], out: Path) -> tuple[Path, bool]:
     """-> (bag, is ROS 2); MsdnetError for anything but one readable bag and a free --out."""
     if len(inputs) != 1:
@@ -175,21 +197,25 @@ def run_bag(
     bag, is2 = _check_paths(inputs, out)
     mapping = parse_field_map(field_specs, pipe.columns)
     if storage is None:
-        storage = _storage_of(bag) if is2 else ROS1_DEFAULT_STORAGE
+        storage = storage_of(bag) if is2 else ROS1_DEFAULT_STORAGE
         if not is2:
             echo(f"ROS 1 input: writing a ROS 2 bag in {storage} storage (--bag-storage sqlite3|mcap)")
     if storage not in STORAGES:
         raise MsdnetError(bag, f"storage {storage!r} cannot be written (--bag-storage {'|'.join(STORAGES)})")
     ros2 = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
     dense_topic = topic.rstrip("/") + DENSE_SUFFIX
+    prepare_bag_out(out)
     try:
         reader = highlevel.AnyReader([bag], default_typestore=ros2)
         reader.open()
     except Exception as err:
         raise MsdnetError(bag, f"unreadable bag: {' '.join(str(err).split())[:200]}") from None
-    out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.parent / temp_name(out.name)  # removed by the next run's clean_stale_temps if killed
-    tmp.mkdir()
+    try:
+        tmp.mkdir()
+    except OSError as err:
+        reader.close()
+        raise write_error(out, err) from None
     try:
         conns = [c for c in reader.connections if c.topic == topic]
         if not conns:
@@ -223,8 +249,8 @@ def run_bag(
                 bar.update()
             bar.close()
         (tmp / out.name).rename(out)
-    except OSError as err:  # disk full, permissions: one line, nothing left behind
-        raise MsdnetError(out, f"cannot write the bag: {err.strerror or err}") from None
+    except (OSError, sqlite3.Error, rosbag2.WriterError) as err:  # disk full, read-only: one line
+        raise bag_write_error(out, err) from None
     finally:
         reader.close()
         shutil.rmtree(tmp, ignore_errors=True)
@@ -247,7 +273,7 @@ def _run_message(
     try:
         start = time.perf_counter()
         msg = reader.deserialize(raw, POINTCLOUD2)
-        values = pointcloud2_to_array(msg, resolve_fields(msg, pipe.columns, mapping, label))
+        values = pointcloud2_to_array(msg, resolve_fields(msg, pipe.columns, mapping, label), label)
         cloud = cloud_from_array(label, values, tuple(pipe.columns))
         row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
         res = pipe(
