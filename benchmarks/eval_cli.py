@@ -92,6 +92,13 @@ def _methods(
 @click.option("--max-frames", type=click.IntRange(min=1), help="Score this many frames, spread evenly.")
 @click.option("--pictures", type=click.IntRange(min=0), default=3, show_default=True, help="BEV strips.")
 @click.option("--save", type=PathType, help="Also write every cloud: DIR/<method>/<frame>.npy.")
+@click.option(
+    "--metrics",
+    type=click.Choice(("ours", "official", "both")),
+    default="ours",
+    show_default=True,
+    help="Metric formulas: ours, the R2LDM authors' evaluation script's (official), or both.",
+)
 @model_options
 @one_line_errors
 def quality_command(**opts: Any) -> None:
@@ -113,6 +120,7 @@ def quality_command(**opts: Any) -> None:
         opts["seed"],
         opts["pictures"],
         opts["save"],
+        metrics=opts["metrics"],
     )
     click.echo(
         f"scored {doc['evaluation']['frames']} frames x {len(methods)} methods -> {opts['out']}/results.md"

@@ -26,6 +26,7 @@ from tqdm import tqdm
 from msdnet.benchmarks.eval_methods import Method, primary
 from msdnet.benchmarks.metrics import FSCORE_THRESHOLDS, FrameScores, score_frame
 from msdnet.benchmarks.quality.columns import FSCORE_KEYS, PANEL_COLOURS
+from msdnet.benchmarks.quality.official import OfficialFrames, official_markdown, official_section
 from msdnet.runtime.datasets import FrameDataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
@@ -46,6 +47,7 @@ AGREEMENT_TOL = 0.01  # torch vs onnxruntime: largest relative difference of a m
 # MSDNet vs R2LDM relative margins the issue asks for, percent (negative: lower is better)
 MARGIN_BAR = {"cd": -15.0, "mhd": -66.0, **{k: 44.0 for k in FSCORE_KEYS}}
 LIDAR_KEY = "lidar"  # --save folder of the reference clouds
+METRIC_SETS = ("ours", "official", "both")  # --metrics: ours, the R2LDM authors' formulas, or both
 
 
 @dataclass
@@ -55,6 +57,7 @@ class QualityRun:
     frame_ids: list[str]  # frames scored, in order
     scores: dict[str, list[FrameScores]]  # method name -> one FrameScores per frame
     pictures: dict[str, dict[str, np.ndarray]] = field(default_factory=dict)  # frame -> name -> (M, 3)
+    official: dict[str, OfficialFrames] = field(default_factory=dict)  # name -> the authors' formulas
 
 
 def pick_frames(frame_ids: list[str], max_frames: int | None) -> list[str]:
@@ -100,9 +103,13 @@ def evaluate_quality(
     save: Path | None = None,
     picture_ids: tuple[str, ...] = (),
     progress: bool = True,
+    official: bool = False,
 ) -> QualityRun:
-    """Score every method on every frame (module docstring); keep the clouds of ``picture_ids``."""
+    """Score every method on every frame (module docstring); keep the clouds of ``picture_ids``;
+    ``official``: also the R2LDM authors' formulas (``quality.official``)."""
     run = QualityRun(list(frame_ids), {m.name: [] for m in methods})
+    if official:
+        run.official = {m.name: OfficialFrames() for m in methods}
     area = xy_range(grid)
     for fid in tqdm(frame_ids, desc="quality", unit="frame", disable=not progress or None):
         frame = preprocess_frame(ds.get(fid), grid)
@@ -113,6 +120,8 @@ def evaluate_quality(
         for m in methods:
             pred = crop_to_grid(m.run(frame.lidar if m.input == "lidar" else frame.radar, seed), grid)
             run.scores[m.name].append(score_frame(pred, ref, area))
+            if official:
+                run.official[m.name].add(pred, ref)
             if save is not None:
                 _save_cloud(save / m.key, fid, pred)
             if fid in picture_ids:
@@ -249,6 +258,7 @@ def run_quality(
     pictures: int = 3,
     save: Path | None = None,
     progress: bool = True,
+    metrics: str = "ours",
 ) -> dict[str, Any]:
     """Score ``methods`` (the first one raw radar) on ``ds`` and write ``out/results.json``,
     ``out/results.md`` and ``out/pictures/<frame>.png``; returns results.json's content.
@@ -262,7 +272,10 @@ def run_quality(
     if not frame_ids:
         raise MsdnetError(ds.root, f"split {evaluation.get('split')!r} has no frames")
     picture_ids = tuple(pick_frames(frame_ids, pictures)) if pictures > 0 else ()
-    run = evaluate_quality(ds, frame_ids, methods, grid, seed, save, picture_ids, progress)
+    if metrics not in METRIC_SETS:
+        raise MsdnetError("--metrics", f"must be one of {', '.join(METRIC_SETS)}, got {metrics!r}")
+    official = metrics != "ours"
+    run = evaluate_quality(ds, frame_ids, methods, grid, seed, save, picture_ids, progress, official)
     summary = {name: summarize(scores) for name, scores in run.scores.items()}
     out.mkdir(parents=True, exist_ok=True)
     pics = {}
@@ -281,6 +294,7 @@ def run_quality(
             "reference": "preprocessed LiDAR (grid box + field of view, ground removed)",
             "grid": grid_dict(grid),
             "saved_clouds": None if save is None else str(save),
+            "metrics": metrics,
         },
         "machine": machine_info(sgemm=False).to_json(),
         "methods": [m.describe() for m in methods],
@@ -290,6 +304,11 @@ def run_quality(
         "pictures": pics,
         "per_frame": per_frame(run),
     }
+    if official:
+        doc["official"] = official_section(run.official, summary, methods)
     write_json(out / "results.json", doc)
-    write_text(out / "results.md", quality_markdown(doc))
+    text = quality_markdown(doc) if metrics != "official" else f"# Point-cloud quality: {evaluation}\n"
+    if official:
+        text += "\n".join(official_markdown(doc)) + "\n"
+    write_text(out / "results.md", text)
     return doc
