@@ -32,6 +32,7 @@ from msdnet.runtime.pointcloud import PointCloud
 
 # model kind -> name in the tables, and the role of its row
 KIND_LABELS = {"student": "MSDNet", "r2ldm": "R2LDM", "teacher": "Teacher (LiDAR in)"}
+PUBLISHED_LABEL = "R2LDM as published"  # the R2LDM of --recipe published (the authors' code)
 ROLE_OF_KIND = {"student": "msdnet", "r2ldm": "r2ldm", "teacher": "teacher"}
 # what a row stands for, in table order ("teacher": LiDAR -> teacher -> points, the student's ceiling)
 ROLES = ("radar", "r2ldm", "msdnet", "ablation", "teacher", "lidar")
@@ -105,7 +106,8 @@ class PipelineMethod(Method):
         self.backend, self.source = "onnxruntime", str(folder)
         self.grid = self.pipe.artifact.grid
         self.role = "ablation" if name else ("msdnet" if self.kind == "student" else "r2ldm")
-        self.name = name or f"{KIND_LABELS[self.kind]} (onnxruntime)"
+        published = self.pipe.sampler is not None  # R2LDM as published (its own sampler block)
+        self.name = name or f"{PUBLISHED_LABEL if published else KIND_LABELS[self.kind]} (onnxruntime)"
         self.key = slug(self.name)
         self.steps = settings.steps_for(self.kind)
         self.threshold = settings.threshold
@@ -139,12 +141,15 @@ class TorchMethod(Method):
         self.model, self.cfg, self.kind = model, cfg, state.kind
         self.backend, self.source, self.grid = "torch", str(checkpoint), cfg.grid
         self.role = "ablation" if name else ROLE_OF_KIND[self.kind]
-        self.name = name or f"{KIND_LABELS[self.kind]} (torch)"
+        published = getattr(cfg, "r2ldm_recipe", "improved") == "published" and self.kind == "r2ldm"
+        self.name = name or f"{PUBLISHED_LABEL if published else KIND_LABELS[self.kind]} (torch)"
         self.input = "lidar" if self.kind == "teacher" else "radar"
         self.columns = cfg.lidar_columns if self.kind == "teacher" else cfg.radar_columns
         self.max_voxels = cfg.max_voxels_lidar if self.kind == "teacher" else cfg.max_voxels_radar
         self.key = slug(self.name)
         default = cfg.diffusion.sample_steps if self.kind == "student" else cfg.r2ldm_sample_steps
+        if published:
+            default = cfg.published.sample_steps
         self.steps = settings.steps_for(self.kind) or default
         self.threshold = cfg.threshold if settings.threshold is None else settings.threshold
         self.noise_shape = (1, *bev_shape(cfg))  # (1, C, H8, W8) like the pipeline's eps
@@ -158,12 +163,16 @@ class TorchMethod(Method):
         enc = make_encoder_input([pts], self.cfg.grid, self.max_voxels)
         if enc.features.shape[0] == 0:  # no voxel in the grid: the pipeline returns nothing too
             return np.empty((0, 3), np.float32)
-        noise = np.random.default_rng(seed).standard_normal(self.noise_shape, dtype=np.float32)
+        rng = np.random.default_rng(seed)  # x_T, then (published R2LDM) the re-noising draws
+        noise = rng.standard_normal(self.noise_shape, dtype=np.float32)
+        extra = {"rng": rng} if getattr(self.model, "takes_rng", False) else {}
         with torch.no_grad():
             if self.kind == "teacher":
                 occ, off = self.model.predict(enc)
             else:
-                occ, off = self.model.predict(enc, noise=torch.from_numpy(noise), sample_steps=self.steps)
+                occ, off = self.model.predict(
+                    enc, noise=torch.from_numpy(noise), sample_steps=self.steps, **extra
+                )
         points, _ = decode_occupancy(occ[0].numpy(), off[0].numpy(), self.cfg.grid, self.threshold)
         return points
 

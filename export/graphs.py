@@ -103,6 +103,13 @@ def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Modul
             (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
             (onnx_spec.RECON_HEAD_SPARSE, SparseHeadGraph(model.head)),
         ]
+    if kind == "r2ldm" and model.cfg.r2ldm_recipe == "published":  # training/r2ldm_published.py
+        return [
+            (onnx_spec.ENCODER_QUARTER, model.encoder),
+            (onnx_spec.R2LDM_STEP, model.step),
+            (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
+            (onnx_spec.RECON_HEAD_SPARSE, SparseHeadGraph(model.head)),
+        ]
     if kind == "r2ldm":
         return [
             (onnx_spec.ENCODER, model.encoder),
@@ -143,9 +150,18 @@ def example_inputs(spec: GraphSpec, cfg: ModelConfig, enc: EncoderInput, seed: i
     row = torch.from_numpy(step_coefficients(cfg.diffusion)[0])  # (3,) [t, abar_t, abar_prev]
     scalars = {"t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}  # each (1,)
     scalars["gate"] = torch.zeros(1)  # the sparse head keeps every voxel while tracing
-    if spec is onnx_spec.ENCODER:
-        return enc.tensors()
+    if spec.file == onnx_spec.ENCODER.file:
+        return encoder_tensors(enc, spec)
     return tuple(scalars[name] if name in scalars else bev() for name in spec.inputs)
+
+
+def encoder_tensors(enc: EncoderInput, spec: GraphSpec) -> tuple[Tensor, ...]:
+    """The encoder graph's inputs in ``spec`` order: ``enc.tensors()`` for ``ENCODER``; for
+    ``ENCODER_QUARTER`` the levels 0..2 and the level-2 voxel coordinates as ``bev_coords``."""
+    if spec is not onnx_spec.ENCODER_QUARTER:
+        return enc.tensors()
+    levels = (enc.subm[0], enc.down[0], enc.subm[1], enc.down[1], enc.subm[2])
+    return (enc.features, *levels, enc.level_coords[2])
 
 
 def export_graph(module: nn.Module, args: tuple[Tensor, ...], spec: GraphSpec, path: Path) -> None:

@@ -32,6 +32,7 @@ import onnxruntime
 
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
+from msdnet.runtime.cosine_logsnr import SamplerSettings
 from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod
 from msdnet.runtime.layouts import layout_for_columns
 from msdnet.training.checkpoint import versions as checkpoint_versions
@@ -44,8 +45,18 @@ def runtime_diffusion(cfg: ModelConfig, kind: str) -> DiffusionConfig:
     noise) with ``r2ldm_sample_steps``."""
     if kind == "r2ldm":
         d = cfg.diffusion
-        return dataclasses.replace(d, start_step=d.num_train_steps, sample_steps=cfg.r2ldm_sample_steps)
+        steps = cfg.published.sample_steps if cfg.r2ldm_recipe == "published" else cfg.r2ldm_sample_steps
+        return dataclasses.replace(d, start_step=d.num_train_steps, sample_steps=steps)
     return cfg.diffusion
+
+
+def published_sampler(cfg: ModelConfig, kind: str) -> dict[str, Any] | None:
+    """The ``sampler`` block of R2LDM as published (its resampled cosine log-SNR DDIM loop,
+    runtime/cosine_logsnr.py); None for every other model."""
+    if kind != "r2ldm" or cfg.r2ldm_recipe != "published":
+        return None
+    p = cfg.published
+    return SamplerSettings(p.sample_steps, p.resample, p.logsnr_min, p.logsnr_max).to_json()
 
 
 def versions() -> dict[str, str]:
@@ -65,7 +76,8 @@ def build_manifest(
     diff = runtime_diffusion(cfg, kind)
     graphs = []
     optional = [s for s in onnx_spec.OPTIONAL_GRAPHS if (folder / s.file).is_file()]
-    for spec in (*GRAPHS_BY_KIND[kind], *optional):
+    sampler = published_sampler(cfg, kind)
+    for spec in (*onnx_spec.graphs_of(kind, sampler, GRAPHS_BY_KIND), *optional):
         size, digest = file_digest(folder / spec.file)
         graphs.append(
             {
@@ -89,7 +101,7 @@ def build_manifest(
             "shape_zyx": list(cfg.grid.shape_zyx),
         },
         "diffusion": {
-            "schedule": "linear",
+            "schedule": "linear" if sampler is None else "unused: the sampler block's schedule",
             "num_train_steps": diff.num_train_steps,
             "beta_start": diff.beta_start,
             "beta_end": diff.beta_end,
@@ -98,6 +110,7 @@ def build_manifest(
             "sample_steps": diff.sample_steps,
             "alphas_cumprod": alphas_cumprod(diff).tolist(),
         },
+        **({} if sampler is None else {"sampler": sampler}),
         "threshold": cfg.threshold,
         "gate": gate,
         "input": {

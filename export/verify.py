@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from msdnet.export.graphs import graph_modules
+from msdnet.export.graphs import encoder_tensors, graph_modules
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.decode import decode_occupancy
 from msdnet.runtime.grid import GridConfig
@@ -179,9 +179,11 @@ def verify_artifact(
         enc = make_encoder_input([pts], cfg.grid, cfg.max_voxels_radar)
         if enc.features.shape[0] == 0:
             continue
-        feeds = {n: t.numpy() for n, t in zip(onnx_spec.ENCODER.inputs, enc.tensors(), strict=True)}
+        enc_spec = mods[onnx_spec.ENCODER.file][0]  # the published R2LDM's stops at level 2
+        feeds = {n: t.numpy() for n, t in zip(enc_spec.inputs, encoder_tensors(enc, enc_spec), strict=True)}
         (f_s,) = run(onnx_spec.ENCODER.file, feeds)
-        noise = np.random.default_rng(seed).standard_normal(f_s.shape, dtype=np.float32)
+        rng = np.random.default_rng(seed)  # x_T, then the published sampler's re-noising draws
+        noise = rng.standard_normal(f_s.shape, dtype=np.float32)
         if kind == "student":
             (x,) = run(onnx_spec.RGFD_ADAPTER.file, {"bev_features": f_s, "noise": noise})
         else:
@@ -200,7 +202,9 @@ def verify_artifact(
         if onnx_spec.RECON_HEAD_SPARSE.file in pipe.sessions:  # gate 0: every half-scale voxel
             run(onnx_spec.RECON_HEAD_SPARSE.file, {"features": x, "gate": np.zeros(1, np.float32)})
         # End to end, torch side: the model's own inference path, same noise and step count.
-        occ, off = model.predict(enc, noise=torch.from_numpy(noise), sample_steps=len(coeffs))
+        extra = {"rng": rng} if getattr(model, "takes_rng", False) else {}
+        steps = len(coeffs) if pipe.sampler is None else pipe.sampler.steps
+        occ, off = model.predict(enc, noise=torch.from_numpy(noise), sample_steps=steps, **extra)
         ref_pts, _ = decode_occupancy(occ[0].numpy(), off[0].numpy(), cfg.grid, pipe.artifact.threshold)
         got = pipe(pts, seed=seed)
         differ, shift = compare_points(ref_pts, got.points, cfg.grid)

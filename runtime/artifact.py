@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 
 from msdnet.runtime import onnx_spec
+from msdnet.runtime.cosine_logsnr import sampler_settings
 from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod, timesteps
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
@@ -209,7 +210,13 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
     kind = _need(manifest, "model_kind", where, str)
     if kind not in GRAPHS_BY_KIND:
         raise MsdnetError(where, f"model kind {kind!r} is not one of {sorted(GRAPHS_BY_KIND)}")
-    specs = GRAPHS_BY_KIND[kind]
+    sampler = manifest.get("sampler")  # R2LDM as published: its own loop (runtime/cosine_logsnr.py)
+    if sampler is not None:
+        try:
+            sampler_settings(sampler)
+        except ValueError as err:
+            raise MsdnetError(where, str(err)) from None
+    specs = onnx_spec.graphs_of(kind, sampler, GRAPHS_BY_KIND)
     entries = _need(manifest, "graphs", where, list)
     listed = [e.get("file") if isinstance(e, dict) else None for e in entries]
     optional = [s for s in onnx_spec.OPTIONAL_GRAPHS if s.file in listed]

@@ -25,16 +25,16 @@ class GraphSpec:
     dynamic_axes: dict[str, dict[int, str]]  # per input/output: axis -> symbolic name
 
 
-def _encoder_spec() -> GraphSpec:
+def _encoder_spec(levels: int = NUM_DOWN) -> GraphSpec:
     inputs = ["voxel_features", "subm_rules_0"]  # (V_0, F) float32 ; (V_0, 27) int64
     axes: dict[str, dict[int, str]] = {"voxel_features": {0: "V_0"}, "subm_rules_0": {0: "V_0"}}
-    for level in range(1, NUM_DOWN + 1):
+    for level in range(1, levels + 1):
         for kind in ("down", "subm"):
             name = f"{kind}_rules_{level}"  # (V_level, 27) int64, rows index level-1 / level
             inputs.append(name)
             axes[name] = {0: f"V_{level}"}
     inputs.append("bev_coords")  # (V_3, 4) int64 [b, z, y, x] of the last level, for the scatter
-    axes["bev_coords"] = {0: f"V_{NUM_DOWN}"}
+    axes["bev_coords"] = {0: f"V_{levels}"}
     return GraphSpec("encoder.onnx", tuple(inputs), ("bev_features",), axes)
 
 
@@ -68,3 +68,15 @@ R2LDM_STEP = GraphSpec(  # x_t, cond (1, C, H, W), t/abar_t/abar_prev (1,) -> x_
     "r2ldm_step.onnx", ("x_t", "cond", "t", "abar_t", "abar_prev"), ("x_prev",), {}
 )
 R2LDM_GRAPHS = (ENCODER, R2LDM_STEP, RECON_HEAD)
+
+# R2LDM as published (manifest ``sampler.name`` = runtime.cosine_logsnr.SAMPLER_NAME): the encoder
+# stops at level 2 (latent at 1/4 of the grid, bev_coords (V_2, 4)); the step's ``t`` is the
+# log-SNR; the runtime's loop re-noises between repeated steps; recon_head.onnx is the LPCR decoder.
+ENCODER_QUARTER = _encoder_spec(2)
+R2LDM_PUBLISHED_GRAPHS = (ENCODER_QUARTER, R2LDM_STEP, RECON_HEAD)
+
+
+def graphs_of(kind: str, sampler: object, by_kind: dict[str, tuple[GraphSpec, ...]]) -> tuple[GraphSpec, ...]:
+    """The required graphs of a ``kind`` artifact: ``by_kind[kind]``, or the published R2LDM's
+    when the manifest names a sampler (only R2LDM has one)."""
+    return R2LDM_PUBLISHED_GRAPHS if kind == "r2ldm" and sampler else by_kind[kind]

@@ -36,6 +36,7 @@ import onnxruntime as ort
 
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.artifact import Artifact, load_artifact
+from msdnet.runtime.cosine_logsnr import SamplerSettings, sampler_settings
 from msdnet.runtime.ddim import step_coefficients
 from msdnet.runtime.decode import decode_packed, decode_sparse, packed_shape
 from msdnet.runtime.errors import MsdnetError
@@ -93,6 +94,12 @@ class Pipeline:
             self.sessions[spec.file] = sess
         student = self.kind == "student"
         self._step_spec = onnx_spec.DENOISER_STEP if student else onnx_spec.R2LDM_STEP
+        # R2LDM as published: the resampled cosine log-SNR loop (runtime/cosine_logsnr.py); None:
+        # the linear-schedule DDIM loop of runtime/ddim.py
+        block = artifact.manifest.get("sampler")
+        self.sampler: SamplerSettings | None = None if block is None else sampler_settings(block)
+        self._enc_spec = next(s for s in artifact.specs if s.file == onnx_spec.ENCODER.file)
+        self._renoise: np.ndarray | None = None  # (K, 2) [a, b] of the last coefficients() call
         self._allocate(device_of(provider))
         self.auto: AutoReport | None = None  # provider "auto": each graph's engine, its times and why
         if provider.strip().lower() == AUTO:
@@ -248,10 +255,11 @@ class Pipeline:
         coords = batch_coords([vox.coords])  # (V_0, 4) int32 [b = 0, z, y, x]
         rb = build_encoder_rulebooks(coords, self.artifact.grid.shape_zyx, onnx_spec.NUM_DOWN)
         feeds = {"voxel_features": vox.features, "subm_rules_0": rb.subm[0]}
-        for level in range(1, onnx_spec.NUM_DOWN + 1):
+        levels = sum(name.startswith("down_rules_") for name in self._enc_spec.inputs)
+        for level in range(1, levels + 1):
             feeds[f"down_rules_{level}"] = rb.down[level - 1]
             feeds[f"subm_rules_{level}"] = rb.subm[level]
-        feeds["bev_coords"] = rb.coords[onnx_spec.NUM_DOWN]
+        feeds["bev_coords"] = rb.coords[levels]
         dtypes = {name: np.float32 if name == "voxel_features" else np.int64 for name in feeds}
         return {k: np.ascontiguousarray(v, dtype=dtypes[k]) for k, v in feeds.items()}, in_grid, n_vox
 
@@ -272,8 +280,15 @@ class Pipeline:
         self._t = now
 
     def coefficients(self, steps: int | None = None) -> np.ndarray:
-        """(T_m, 3) float32 ``[t, abar_t, abar_prev]`` for ``steps`` (None: the manifest's T_m)."""
+        """(K, 3) float32 step-graph scalars, one row per network call, for ``steps`` (None: the
+        manifest's): ``[t, abar_t, abar_prev]`` of the T_m DDIM steps; with a sampler block,
+        ``[lambda_t, abar_t, abar_s]`` of every (repeated) call, and the re-noising after each
+        call kept for the loop."""
         try:
+            if self.sampler is not None:
+                plan = self.sampler.plan(steps)
+                self._renoise = plan.renoise
+                return plan.coefficients
             return step_coefficients(self.artifact.diffusion, steps)
         except ValueError as err:
             raise MsdnetError("steps", str(err)) from None
@@ -305,13 +320,15 @@ class Pipeline:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed: must be an integer >= 0 (the noise generator's seed), got {seed!r}")
         coeffs = self.coefficients(steps)
+        n_steps = int(coeffs.shape[0]) if self.sampler is None else self.sampler.plan(steps).steps
         self._timings: dict[str, float] = {}
         self._t = start = time.perf_counter()
         pts = self.select_columns(points)
         self._timer("prepare")
         in_grid, n_vox = self._encode(pts)
         stats = {"points_in": int(pts.shape[0]), "points_in_grid": in_grid, "voxels": n_vox}
-        stats["steps"] = int(coeffs.shape[0])
+        stats["steps"] = n_steps  # DDIM steps; "network_calls" counts the repeats too
+        stats["network_calls"] = int(coeffs.shape[0])
         if keep_radar:
             stats["radar_kept"] = 0
         if n_vox == 0:  # no row inside the grid box, so no radar point to keep either
@@ -320,14 +337,15 @@ class Pipeline:
             why = "empty scan" if pts.shape[0] == 0 else "no point inside the grid"
             return _empty_result(self._timings, stats, f"{why}: no voxels, empty output")
         self._timer("encoder")
-        np.random.default_rng(seed).standard_normal(dtype=np.float32, out=self._noise)
+        rng = np.random.default_rng(seed)
+        rng.standard_normal(dtype=np.float32, out=self._noise)
         if self.kind == "student":
             self._adapter_bind.bind_cpu_input("noise", self._noise)
             self.sessions[onnx_spec.RGFD_ADAPTER.file].run_with_iobinding(self._adapter_bind)
         else:
             self._x[0].update_inplace(self._noise)  # R2LDM starts from pure noise x_T
         self._timer("adapter")
-        final = self._loop(coeffs)
+        final = self._loop(coeffs, rng)
         self._timer("denoise")
         out, conf, stats["head_voxels"] = self._head(final, thr)
         n_model = len(out)
@@ -344,8 +362,11 @@ class Pipeline:
             notes = (f"no voxel above the threshold: {tail}",)
         return Result(out, conf, self._timings, stats, notes)
 
-    def _loop(self, coeffs: np.ndarray) -> int:
-        """Run the DDIM steps in place on the ping-pong buffers; -> index of the final buffer."""
+    def _loop(self, coeffs: np.ndarray, rng: np.random.Generator | None = None) -> int:
+        """Run the DDIM steps in place on the ping-pong buffers; -> index of the final buffer.
+        With a sampler, after call k with a finite re-noise row [a, b]: x <- a x + b eps, eps
+        drawn from ``rng`` (the generator that drew x_T, so a seed fixes every draw)."""
+        renoise = self._renoise if self.sampler is not None else None
         sess = self.sessions[self._step_spec.file]
         t, a_t, a_prev = (self._scalar_vals[k] for k in ("t", "abar_t", "abar_prev"))
         host = self._scalars
@@ -355,6 +376,13 @@ class Pipeline:
             a_t.update_inplace(host["abar_t"])
             a_prev.update_inplace(host["abar_prev"])
             sess.run_with_iobinding(self._step_bind[k % 2])
+            if renoise is not None and np.isfinite(renoise[k, 0]):
+                if rng is None:
+                    raise MsdnetError("sampler", "re-noising needs the call's random generator")
+                out = self._x[(k + 1) % 2]
+                eps = rng.standard_normal(self.bev_shape, dtype=np.float32)
+                a, b = renoise[k]
+                out.update_inplace(np.ascontiguousarray(a * out.numpy() + b * eps, dtype=np.float32))
         return coeffs.shape[0] % 2
 
     def warmup(self, runs: int = 1) -> None:

@@ -15,7 +15,7 @@ Contract with the training loop and the exporter:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -38,6 +38,8 @@ class EncoderInput:
     down: list[Tensor]  # per down layer to level l = 1..3: (V_l, 27) int64 rows of level l-1
     bev_coords: Tensor  # (V_3, 4) int64 [b, z, y, x] voxels of the last level (1/8 grid)
     batch_size: int  # clouds in the batch (b = 0 .. batch_size - 1)
+    # per level l = 0..3: (V_l, 4) int64 [b, z, y, x] (the published R2LDM scatters level 2)
+    level_coords: list[Tensor] = field(default_factory=list)
 
     def tensors(self) -> tuple[Tensor, ...]:
         """Encoder inputs in ``ENCODER.inputs`` order: features, subm_0, (down_l, subm_l) for
@@ -55,6 +57,7 @@ class EncoderInput:
             [r.to(device) for r in self.down],
             self.bev_coords.to(device),
             self.batch_size,
+            [c.to(device) for c in self.level_coords],
         )
 
     def bev_mask(self, shape_hw: tuple[int, int]) -> Tensor:
@@ -108,6 +111,7 @@ def make_encoder_input(clouds: Sequence[np.ndarray], grid: GridConfig, max_voxel
         down=[i64(r) for r in rb.down],
         bev_coords=i64(rb.coords[-1]),
         batch_size=len(clouds),
+        level_coords=[i64(c) for c in rb.coords],
     )
 
 

@@ -128,7 +128,13 @@ def _student_options(
 
 
 def _plan(
-    kind: str, out: Path, resume: bool, epochs: int | None, tcfg: TrainConfig, overrides: dict
+    kind: str,
+    out: Path,
+    resume: bool,
+    epochs: int | None,
+    tcfg: TrainConfig,
+    overrides: dict,
+    recipe: str = "improved",
 ) -> tuple[int, TrainConfig]:
     """(epochs, train config) of the run. Fresh: --epochs or the preset's, the preset's config
     with the options given. Resume: what OUT/last planned, with the options given (checked)."""
@@ -139,6 +145,10 @@ def _plan(
         n = epochs or (tcfg.epochs_teacher if kind == "teacher" else tcfg.epochs_student)
         if kind == "r2ldm":
             tcfg = replace(tcfg, lr=R2LDM_LR)
+        if recipe == "published":
+            from msdnet.training.published_config import published_train_config
+
+            tcfg = published_train_config(tcfg, kind)
         return n, replace(tcfg, **overrides)
     if not has_last:
         raise MsdnetError(out, "has no checkpoint 'last' to resume")
@@ -153,6 +163,12 @@ def _plan(
 @click.option("--preset", default="lite", show_default=True, help="Model/train preset: tiny | lite | paper.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Run folder.")
 @click.option("--epochs", type=int, default=None, help="Epochs (default: the preset's).")
+@click.option(
+    "--recipe",
+    default="improved",
+    show_default=True,
+    help="R2LDM recipe: improved (ours) | published (the authors' code; its teacher is the LPCR stage 1).",
+)
 @click.option("--resume", is_flag=True, help="Continue OUT/last (weights, optimizer, schedule, position).")
 @click.option("--teacher", type=click.Path(path_type=Path), default=None, help="Teacher checkpoint.")
 @click.option("--batch-size", type=int, default=None, help="Frames per step and process.")
@@ -258,6 +274,7 @@ def main(
     preset: str,
     out: Path,
     epochs: int | None,
+    recipe: str,
     resume: bool,
     teacher: Path | None,
     batch_size: int | None,
@@ -300,10 +317,17 @@ def main(
     if not augment:
         options["augment"] = AugmentConfig.off()
     overrides = {k: v for k, v in options.items() if v is not None}
-    n_epochs, tcfg = _plan(kind, out, resume, epochs, TRAIN_PRESETS[preset], overrides)
+    from msdnet.training.published_config import RECIPES, with_recipe
+
+    _choice(recipe, RECIPES, "recipe")
+    if recipe == "published" and kind == "student":
+        raise MsdnetError("--recipe", "published is an R2LDM recipe: train teacher (stage 1) or r2ldm")
+    n_epochs, tcfg = _plan(kind, out, resume, epochs, TRAIN_PRESETS[preset], overrides, recipe)
     if tcfg.batch_size < 1 or tcfg.lr <= 0 or tcfg.num_workers < 0:
         raise MsdnetError(None, "--batch-size must be >= 1, --lr > 0 and --workers >= 0")
     cfg = config_for_dataset(MODEL_PRESETS[preset], dataset)
+    if recipe == "published":
+        cfg = with_recipe(cfg, recipe)
     if occ_pos_weight is not None:
         if occ_pos_weight <= 0:
             raise MsdnetError("--occ-pos-weight", f"must be > 0, got {occ_pos_weight}")
@@ -353,7 +377,7 @@ def main(
     )
     # On resume the student / R2LDM checkpoint holds its teacher: no teacher file needed.
     teacher_model = _teacher(teacher, cfg) if teacher is not None and not resume else None
-    if kind != "teacher":
+    if kind != "teacher" and cfg.r2ldm_recipe != "published":  # the published latent is tanh-bounded
         cfg = _with_latent_norm(cfg, out, resume, init, teacher_model, train_set, latent_frames)
 
     info = init_distributed(torch.device(device))

@@ -304,6 +304,10 @@ def build_model(kind: str, cfg: ModelConfig, teacher: TeacherModel | None = None
     """kind: "teacher" | "student" | "r2ldm". The student and R2LDM take the trained teacher and
     freeze it in place (``requires_grad_(False)``, eval mode); without one they get a fresh
     teacher whose weights a checkpoint must load (their checkpoints carry the teacher's)."""
+    if cfg.r2ldm_recipe == "published" and kind in ("teacher", "r2ldm"):
+        from msdnet.training.r2ldm_published import build_published  # R2LDM as published
+
+        return build_published(kind, cfg, teacher)
     if kind == "teacher":
         return TeacherModel(cfg)
     if kind == "student":
@@ -314,6 +318,11 @@ def build_model(kind: str, cfg: ModelConfig, teacher: TeacherModel | None = None
 
 
 def bev_shape(cfg: ModelConfig) -> tuple[int, int, int]:
-    """(C, H8, W8) of every BEV map (F^S, F^R, F^D, the noise eps) for this config."""
+    """(C, H8, W8) of every BEV map (F^S, F^R, F^D, the noise eps) for this config; the published
+    R2LDM's latent (L, H4, W4) for that recipe."""
+    if cfg.r2ldm_recipe == "published":
+        from msdnet.training.r2ldm_published import latent_shape
+
+        return latent_shape(cfg)
     _, h8, w8 = level_shapes(cfg.grid)[-1]
     return cfg.bev_channels, h8, w8
