@@ -6,6 +6,7 @@ import click
 
 from msdnet.benchmarks.conditioning import conditioning_command
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
+from msdnet.benchmarks.fuzz import fuzz_command
 from msdnet.benchmarks.latency.cli import latency_command
 from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
@@ -25,3 +26,4 @@ main.add_command(latency_command)
 main.add_command(stages_command)
 main.add_command(conditioning_command)
 main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)
+main.add_command(fuzz_command)  # mutated inputs through every reader (benchmarks/fuzz.py)

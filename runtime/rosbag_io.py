@@ -145,6 +145,29 @@ def pointcloud2_to_array(
     return out
 
 
+def message_cloud(
+    deserialize: Callable[[bytes, str], Any],
+    raw: bytes,
+    columns: Sequence[str],
+    mapping: dict[str, str],
+    label: str,
+) -> tuple[Any, Any]:
+    """Serialized PointCloud2 ``raw`` -> (message, PointCloud of ``columns``); any bad content
+    (undecodable bytes, missing or duplicate fields, a short buffer, over the point cap) is one
+    MsdnetError naming ``label``. ``deserialize(raw, msgtype)``: the reader's or a typestore's."""
+    try:
+        msg = deserialize(raw, POINTCLOUD2)
+    except Exception as err:  # struct, index, unicode errors from a broken CDR / ROS 1 buffer
+        cause = " ".join(str(err).split())[:160] or type(err).__name__
+        raise MsdnetError(label, f"undecodable PointCloud2 ({type(err).__name__}: {cause})") from None
+    fields = resolve_fields(msg, columns, mapping, label)
+    try:
+        values = pointcloud2_to_array(msg, fields, label)
+    except (ValueError, TypeError, OverflowError) as err:
+        raise MsdnetError(label, " ".join(str(err).split())[:200]) from None
+    return msg, cloud_from_array(label, values, tuple(columns))
+
+
 def make_pointcloud2(store: Any, points: np.ndarray, names: Sequence[str], stamp: Any, frame_id: str) -> Any:
     """(N, C) values -> PointCloud2 of ``store`` (a rosbags typestore, ROS 1 or 2) with float32
     fields ``names`` (point_step 4 C, little-endian, height 1); ``stamp`` = (sec, nanosec)."""
@@ -272,9 +295,7 @@ def _run_message(
     row: dict[str, Any] = {"file": label, "points_in": 0, "points_out": 0, "seconds": 0.0}
     try:
         start = time.perf_counter()
-        msg = reader.deserialize(raw, POINTCLOUD2)
-        values = pointcloud2_to_array(msg, resolve_fields(msg, pipe.columns, mapping, label), label)
-        cloud = cloud_from_array(label, values, tuple(pipe.columns))
+        msg, cloud = message_cloud(reader.deserialize, raw, pipe.columns, mapping, label)
         row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
         res = pipe(
             cloud,
