@@ -235,13 +235,15 @@ def write_save_index(save: Path, methods: list[Method], frame_ids: list[str], gr
 
 
 def strip_panels(run: QualityRun, fid: str, methods: list[Method]) -> list[tuple[str, np.ndarray, str]]:
-    """The picture strip of one frame: radar | R2LDM | MSDNet | LiDAR (models present only)."""
+    """The picture strip of one frame: radar | R2LDM (each onnxruntime R2LDM row, e.g. as published
+    and improved; else the torch one) | MSDNet | LiDAR (models present only)."""
 
     clouds = run.pictures[fid]
     panels = [("4D radar", clouds[methods[0].name], PANEL_COLOURS["radar"])]
     for role in ("r2ldm", "msdnet"):
-        m = primary(methods, role)
-        if m is not None:
+        every = [m for m in methods if m.role == "r2ldm" and m.backend == "onnxruntime"]
+        first = primary(methods, role)
+        for m in every if role == "r2ldm" and every else ([first] if first is not None else []):
             panels.append((m.name, clouds[m.name], PANEL_COLOURS[role]))
     panels.append(("LiDAR", clouds["LiDAR"], PANEL_COLOURS["lidar"]))
     return panels
