@@ -1,4 +1,4 @@
-"""``msdnet-bench``: voxelize, quality, odometry, place, latency, stages, conditioning."""
+"""``msdnet-bench``: voxelize, quality, odometry, place, latency, steps, stages, conditioning, soak."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ from msdnet.benchmarks.conditioning import conditioning_command
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.fuzz import fuzz_command
 from msdnet.benchmarks.latency.cli import latency_command
+from msdnet.benchmarks.latency.steps import steps_command
 from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
@@ -23,6 +24,7 @@ main.add_command(quality_command)
 main.add_command(odometry_command)
 main.add_command(place_command)
 main.add_command(latency_command)
+main.add_command(steps_command)  # Table III: the T_m sweep on a dataset split (benchmarks/latency/steps.py)
 main.add_command(stages_command)
 main.add_command(conditioning_command)
 main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)

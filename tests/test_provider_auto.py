@@ -186,3 +186,15 @@ def test_infer_verbose_prints_the_picks(folder, cache, tmp_path):
     assert "provider auto: encoder.onnx: openvino (forced; cached)" in res.output
     assert "provider auto: rgfd_adapter.onnx: onnxruntime" in res.output and "DeformConv" in res.output
     assert (tmp_path / "out" / "scan.npy").is_file()
+
+
+def test_latency_results_record_the_picks(folder, cache):
+    from msdnet.benchmarks.latency.peer_report import auto_section
+
+    pipe = Pipeline.from_dir(folder, "auto", threads=1)
+    text = "\n".join(auto_section({"provider_auto": {"msdnet": pipe.auto.to_json()}}))
+    assert "## --provider auto" in text and text.count("| msdnet |") == len(pipe.sessions)
+    assert "DeformConv" in text and str(cache) in text
+    enc = pipe.auto.picks[onnx_spec.ENCODER.file]
+    assert f"| msdnet | encoder.onnx | **{enc.engine}** | {enc.ms['onnxruntime']:.3f} |" in text
+    assert auto_section({"provider_auto": {}}) == []

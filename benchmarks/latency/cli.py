@@ -18,7 +18,7 @@ from msdnet.runtime.errors import one_line_errors
 )
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
-@click.option("--provider", default="cpu", show_default=True, help="cpu, cuda or tensorrt.")
+@click.option("--provider", default="cpu", show_default=True, help="cpu, auto, openvino, cuda or tensorrt.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
 @click.option("--repeats", type=click.IntRange(min=1), help="Timed MSDNet frames [30; quick 3].")
 @click.option("--warmup", type=click.IntRange(min=0), help="Untimed frames first [3; quick 1].")

@@ -75,6 +75,29 @@ def head_section(res: dict[str, Any]) -> list[str]:
     return out
 
 
+def auto_section(res: dict[str, Any]) -> list[str]:
+    """``--provider auto``: each model's engine per graph, both engines' times and why (empty otherwise)."""
+    auto = res.get("provider_auto") or {}
+    if not auto:
+        return []
+    out = [
+        "",
+        "## --provider auto: engine per graph (measured at load on the model's own inputs, interleaved)",
+        "",
+        "| model | graph | engine | onnxruntime ms | OpenVINO ms | why | source |",
+        "|---|---|---|---:|---:|---|---|",
+    ]
+    for kind, rep in auto.items():
+        for graph, p in rep["picks"].items():
+            ms = p["ms"]
+            out.append(
+                f"| {kind} | {graph} | **{p['engine']}** | {_fmt(ms.get('onnxruntime'), 3)} | "
+                f"{_fmt(ms.get('openvino'), 3)} | {p['reason']} | {'cache' if p['cached'] else 'measured'} |"
+            )
+    notes = sorted({f"{r['cache']} ({r['cache_note']})" for r in auto.values()})
+    return [*out, "", "Cache: " + "; ".join(notes) + "."]
+
+
 def peers_section(res: dict[str, Any]) -> list[str]:
     """Per stage and engine medians, ours / best peer, and what each engine could not run."""
     p = res.get("peers", {})

@@ -6,7 +6,7 @@ pipeline runs: the coarse-to-fine ``recon_head_sparse.onnx`` with its gate, or t
 Engines:
 
 - ``onnxruntime``: ours, the pipeline's own sessions (its threads and provider: with
-  ``--provider openvino`` some of them are OpenVINO's), plain ``session.run``;
+  ``--provider openvino`` or ``auto`` some of them are OpenVINO's), plain ``session.run``;
 - ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
   (``runtime.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
@@ -35,6 +35,7 @@ import torch
 from msdnet.benchmarks.latency.timing import Scan
 from msdnet.runtime import onnx_spec
 from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.provider_auto import failure_reason
 from msdnet.training.batch import make_encoder_input
 
 ENGINES = ("onnxruntime", "openvino", "torch_eager", "torch_compile")
@@ -74,14 +75,6 @@ def capture_feeds(pipe: Pipeline, points: Scan, seed: int = 0) -> dict[str, Feed
         head["gate"] = np.full(1, pipe.gate, np.float32)
     feeds["recon_head"] = [head]
     return feeds
-
-
-def failure_reason(err: Exception) -> str:
-    """One line: OpenVINO's conversion summary (e.g. "No conversion rule found for operations:
-    DeformConv-19") when it has one, else the first line of the message."""
-    lines = [ln.strip(" -") for ln in str(err).splitlines() if ln.strip()]
-    summary = [ln for ln in lines if ln.startswith(("No conversion rule", "Conversion is failed"))]
-    return f"{type(err).__name__}: {'; '.join(summary or lines[:1])[:200]}"
 
 
 def _onnxruntime(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds) -> Callable[[], None]:

@@ -1,9 +1,11 @@
 """Quality beside latency (MSDNet Table III): the metrics of a model's output at each step count.
 
-Frames come from a dataset folder (``vod``, ``astyx`` or ``sim`` layout), preprocessed as for
-training (LiDAR cropped to the grid box and the radar's field of view, ground removed; radar
-cropped to the box). Each frame's prediction is scored against its LiDAR with
-``benchmarks.metrics.score_frame``; the table holds the mean over the frames.
+Frames come from a dataset folder (``vod``, ``astyx`` or ``sim`` layout; one split, or all),
+preprocessed as for training (LiDAR cropped to the grid box and the radar's field of view, ground
+removed; radar cropped to the box). Each prediction is cropped like the reference and scored with
+``benchmarks.metrics.score_frame``, exactly as ``msdnet-bench quality`` does, so the figures compare
+with its tables; the rows hold the mean over the frames (``quality.suite.summarize``). Step counts
+run round-robin per frame (the order rotated per frame), so a burst of other load hits them all.
 """
 
 from __future__ import annotations
@@ -14,37 +16,31 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from msdnet.benchmarks.metrics import score_frame
+from msdnet.benchmarks.metrics import FrameScores, score_frame
+from msdnet.benchmarks.quality.suite import crop_to_grid, pick_frames, summarize, xy_range
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.pipeline import Pipeline
 from msdnet.runtime.pointcloud import PointCloud
 
 
-def _mean(values: list[float]) -> float:
-    """Mean of the finite values (nan when none is finite)."""
-    arr = np.asarray(values, dtype=np.float64)
-    arr = arr[np.isfinite(arr)]
-    return float(arr.mean()) if arr.size else float("nan")
-
-
 def load_frames(
-    data: Path, dataset: str, count: int, pipe: Pipeline
+    data: Path, dataset: str, count: int | None, pipe: Pipeline, split: str | None = None
 ) -> list[tuple[str, PointCloud, np.ndarray]]:
-    """Up to ``count`` frames spread evenly over the dataset, preprocessed on the model's grid:
-    (frame id, radar cloud with the model's columns, LiDAR (M, 3) float32 [x, y, z])."""
+    """Up to ``count`` frames (None: all) of ``split`` (None: every frame), spread evenly and in
+    order, preprocessed on the model's grid: (frame id, radar cloud with the model's columns,
+    LiDAR (M, 3) float32 [x, y, z])."""
     from msdnet.runtime.datasets import open_dataset
     from msdnet.runtime.preprocess import preprocess_frame
 
-    ds = open_dataset(dataset, data)
-    ids = list(ds.frame_ids)
+    ds = open_dataset(dataset, data, split)
+    ids = pick_frames(list(ds.frame_ids), count)
     if not ids:
-        raise MsdnetError(data, "dataset has no frames")
-    picks = sorted({int(i) for i in np.linspace(0, len(ids) - 1, min(count, len(ids)))})
+        raise MsdnetError(data, f"dataset has no frames{f' in split {split!r}' if split else ''}")
     frames = []
-    for i in tqdm(picks, desc="load frames", unit="frame", disable=None):
-        frame = preprocess_frame(ds[i], pipe.artifact.grid)
+    for fid in tqdm(ids, desc="load frames", unit="frame", disable=None):
+        frame = preprocess_frame(ds.get(fid), pipe.artifact.grid)
         radar = frame.radar.select(pipe.columns)
-        frames.append((ids[i], radar, np.asarray(frame.lidar.xyz, np.float32)))
+        frames.append((fid, radar, crop_to_grid(frame.lidar.xyz, pipe.artifact.grid)))
     return frames
 
 
@@ -55,28 +51,32 @@ def quality_by_steps(
     threshold: float,
     seed: int = 0,
 ) -> list[dict[str, Any]]:
-    """Per step count: mean CD (m), MHD (m), JSD, MMD, F-score@0.2 m and decoded points over
-    ``frames``, plus the median total latency (ms) of those calls."""
-    lo, hi = pipe.artifact.grid.point_range[:3], pipe.artifact.grid.point_range[3:]
-    xy_range = (lo[0], lo[1], hi[0], hi[1])
-    rows = []
-    for steps in tqdm(steps_list, desc="quality by T_m", unit="T_m", disable=None):
-        scores, totals = [], []
-        for _, radar, lidar in frames:
+    """Per step count: the mean of every metric over ``frames`` (``quality.suite.summarize``: cd,
+    cd_squared, mhd, fscore@t, jsd, mmd, points, frames, empty_frames), ``fscore_0.2`` (its old
+    name) and the median ms per frame of those calls: ``ms`` (total) and ``loop_ms`` (DDIM loop)."""
+    grid = pipe.artifact.grid
+    area = xy_range(grid)
+    scores: dict[int, list[FrameScores]] = {s: [] for s in steps_list}
+    totals: dict[int, list[float]] = {s: [] for s in steps_list}
+    loops: dict[int, list[float]] = {s: [] for s in steps_list}
+    if frames:
+        pipe(frames[0][1], steps=steps_list[0], threshold=threshold, seed=seed)  # warm-up, untimed
+    order = list(steps_list)
+    bar = tqdm(total=len(frames) * len(order), desc="quality by T_m", unit="call", disable=None)
+    for k, (_, radar, lidar) in enumerate(frames):
+        for steps in order[k % len(order) :] + order[: k % len(order)]:
             res = pipe(radar, steps=steps, threshold=threshold, seed=seed)
-            totals.append(res.timings["total"])
-            scores.append(score_frame(res.points, lidar, xy_range))
-        rows.append(
-            {
-                "steps": int(steps),
-                "frames": len(frames),
-                "cd": _mean([s.cd for s in scores]),
-                "mhd": _mean([s.mhd for s in scores]),
-                "jsd": _mean([s.jsd for s in scores]),
-                "mmd": _mean([s.mmd for s in scores]),
-                "fscore_0.2": _mean([s.fscore[0.2] for s in scores]),
-                "points": float(np.mean([s.num_points for s in scores])),
-                "ms": float(np.median(totals) * 1e3),
-            }
-        )
+            totals[steps].append(res.timings["total"])
+            loops[steps].append(res.timings["denoise"])
+            scores[steps].append(score_frame(crop_to_grid(res.points, grid), lidar, area))
+            bar.update()
+    bar.close()
+    rows = []
+    for steps in steps_list:
+        row: dict[str, Any] = {"steps": int(steps), **summarize(scores[steps])}
+        row["fscore_0.2"] = row["fscore@0.2"]
+        row["ms"] = float(np.median(totals[steps]) * 1e3) if totals[steps] else float("nan")
+        row["ms_p90"] = float(np.percentile(totals[steps], 90) * 1e3) if totals[steps] else float("nan")
+        row["loop_ms"] = float(np.median(loops[steps]) * 1e3) if loops[steps] else float("nan")
+        rows.append(row)
     return rows

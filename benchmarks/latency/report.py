@@ -19,7 +19,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 from msdnet.benchmarks.latency.models import publish_temp, write_json_atomic, write_text_atomic  # noqa: E402
-from msdnet.benchmarks.latency.peer_report import goal_rows, head_section, peers_section  # noqa: E402
+from msdnet.benchmarks.latency.peer_report import (  # noqa: E402
+    auto_section,
+    goal_rows,
+    head_section,
+    peers_section,
+)
 
 # MSDNet Table IV (VoD, one RTX 4090): runtime s, parameters M
 PAPER_TABLE4 = {"r2dm": (0.76, 31.1), "r2ldm": (0.96, 40.3), "msdnet": (0.10, 20.5)}
@@ -242,7 +247,8 @@ def _details(res: dict[str, Any]) -> list[str]:
 
 def markdown(res: dict[str, Any]) -> str:
     """results.md: machine, input, stages, goals, Tables III and IV, sweeps, details, INT8, notes."""
-    out = _header(res) + _tables(res) + head_section(res) + peers_section(res) + _details(res)
+    out = _header(res) + _tables(res) + head_section(res) + auto_section(res) + peers_section(res)
+    out += _details(res)
     out += ["", "![stages](stages.png) ![steps](steps.png) ![points](points.png)", ""]
     out += [f"- {n}" for n in res.get("notes", [])]
     return "\n".join(out) + "\n"

@@ -60,7 +60,7 @@ class LatencyConfig:
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
-    provider: str = "cpu"  # onnxruntime provider short name
+    provider: str = "cpu"  # provider short name (runtime.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
     repeats: int = 30  # timed MSDNet calls (sweeps use max(2, repeats // 5))
     warmup: int = 3  # untimed calls before timing
@@ -261,6 +261,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         },
         "head": {**head, "gate_note": gate_note},
         "peers": peers,
+        "provider_auto": {k: pipes[k].auto.to_json() for k in KINDS if pipes[k].auto is not None},
         "step_graph": main["step_graph"],
         "steps_sweep": steps_rows,
         "table3": {"steps": list(TABLE3_STEPS), "quality": quality},
