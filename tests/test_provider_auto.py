@@ -60,6 +60,7 @@ def _force(cache, folder, engine: str, threads: int = 1) -> None:
 
 def test_tolerances_are_the_exports():
     assert (provider_auto.AGREE_REL_TOL, provider_auto.AGREE_COS_TOL) == (GRAPH_REL_TOL, GRAPH_COS_TOL)
+    assert provider_auto.AGREE_E2E_TOL == E2E_DIFF_TOL
 
 
 def test_measured_once_then_cached(folder, cache, monkeypatch):
@@ -140,6 +141,15 @@ def test_outputs_that_disagree_keep_onnxruntime():
     assert provider_auto.disagreement([ref[0] * (1 + 1e-6)], ref) is None
     assert "max rel" in provider_auto.disagreement([ref[0] * 1.01], ref)
     assert "shape" in provider_auto.disagreement([np.ones((3, 3), np.float32)], ref)
+    # the coarse-to-fine head: a voxel on the gate may be gated by one engine only (<= 0.2 %)
+    names = ["occupancy", "voxels"]
+    vox = np.arange(1000, dtype=np.int64)
+    occ = np.linspace(0, 1, 1000, dtype=np.float32)[:, None].repeat(8, 1)
+    assert provider_auto.disagreement([occ[1:], vox[1:]], [occ, vox], names) is None
+    assert "gated voxels" in provider_auto.disagreement([occ[3:], vox[3:]], [occ, vox], names)
+    bad = occ[1:].copy()
+    bad[5] += 0.1
+    assert "max rel" in provider_auto.disagreement([bad, vox[1:]], [occ, vox], names)
 
 
 def test_cache_location_and_bad_files(tmp_path, monkeypatch, folder):
