@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import float64, int32, sequence, uint8, uint32
+from cyclonedds.idl.types import int32, sequence, uint8, uint32
 
 from msdnet.runtime.errors import MsdnetError
 
@@ -57,15 +57,6 @@ class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
     row_step: uint32
     data: sequence[uint8]
     is_dense: bool
-
-
-@dataclass
-class Vector3(IdlStruct, typename="geometry_msgs::msg::dds_::Vector3_"):
-    """geometry_msgs/msg/Vector3 (kept for TF-style consumers of this module)."""
-
-    x: float64
-    y: float64
-    z: float64
 
 
 def dds_topic(ros_name: str) -> str:

@@ -6,7 +6,8 @@ A stand-in for a radar driver when trying ``msdnet-node`` without one, and the p
 of the tests and of ``msdnet-bench live``: the scans (any ``read_cloud`` format, every column as a
 float32 field) are sent in turn, ``--count`` messages ``1 / --hz`` apart on an absolute schedule,
 header stamp ``start + i / hz`` (frame ``--frame-id``). ``--bad I`` sends message ``I`` malformed
-(its data cut short). ``--log FILE`` writes ``{"sent": [[stamp_ns, monotonic_s], ...]}``.
+(its data cut short); ``--lockstep S`` waits for each reply. ``--log FILE`` writes
+``{"sent": [[stamp_ns, monotonic_s], ...]}``.
 :class:`DenseCollector` is the other end: a reliable reader of ``<topic>/dense``.
 """
 
@@ -51,13 +52,19 @@ def publish_scans(
     frame_id: str = "radar",
     bad: tuple[int, ...] = (),
     start_ns: int = START_NS,
+    lockstep: float = 0.0,
 ) -> list[tuple[int, float]]:
     """Send ``count`` scans (cycling through ``files``) at ``hz``; -> [(stamp_ns, monotonic send
-    time)] per message. Waits for a subscriber first."""
+    time)] per message. Waits for a subscriber first. ``lockstep`` > 0: after each good message
+    wait up to that many seconds for its ``/dense`` reply before the next (no drop however slow
+    the node is: the tests' mode on a loaded machine)."""
     clouds = [read_cloud(f) for f in files]
     dds = Endpoints(domain_id)
     writer = dds.writer(dds_topic(topic), reliable=False)  # as a sensor driver publishes
+    replies = DenseCollector(topic, domain_id, keep_points=False) if lockstep else None
     wait_matched(writer.get_matched_subscriptions, topic)
+    if replies is not None:
+        replies.wait_matched()
     time.sleep(0.3)  # the subscriber also needs to have discovered this writer
     sent: list[tuple[int, float]] = []
     t0 = time.monotonic()
@@ -72,6 +79,11 @@ def publish_scans(
             time.sleep(delay)
         writer.write(msg)
         sent.append((ns, time.monotonic()))
+        if replies is not None and i not in bad:
+            replies.wait_for(len(sent) - len([b for b in bad if b < i]), lockstep)
+            t0 = time.monotonic() - (i + 1) / hz  # the schedule restarts after the reply
+    if replies is not None:
+        replies.close()
     time.sleep(0.2)  # let the last sample leave before the participant goes
     return sent
 
@@ -128,6 +140,7 @@ class DenseCollector:
 @click.option("--bad", type=int, multiple=True, help="Send message I malformed (data cut short).")
 @click.option("--start-ns", type=int, default=START_NS, show_default=True, help="Stamp of message 0.")
 @click.option("--log", type=click.Path(path_type=Path), help="Write the send times as JSON here.")
+@click.option("--lockstep", type=float, default=0.0, help="Wait up to S seconds for each reply.")
 @one_line_errors
 def main(
     files: tuple[Path, ...],
@@ -139,9 +152,11 @@ def main(
     bad: tuple[int, ...],
     start_ns: int,
     log: Path | None,
+    lockstep: float,
 ) -> None:
     """Publish point-cloud files as a PointCloud2 topic over DDS."""
-    sent = publish_scans(list(files), topic, domain_id, hz, count or len(files), frame_id, bad, start_ns)
+    n = count or len(files)
+    sent = publish_scans(list(files), topic, domain_id, hz, n, frame_id, bad, start_ns, lockstep)
     if log is not None:
         with atomic_output(log) as tmp:
             Path(tmp).write_text(json.dumps({"sent": sent}) + "\n", encoding="utf-8")
