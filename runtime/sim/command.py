@@ -9,6 +9,7 @@ import click
 from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.sim.rigs import SIM_RIGS
 from msdnet.runtime.sim.sequence import SequenceSim
 from msdnet.runtime.sim.trajectory import FRAME_DT, loop_closures
 from msdnet.runtime.sim.writer import (
@@ -42,12 +43,18 @@ def simulate_dataset(
     seed: int,
     overwrite: bool = False,
     progress: bool = True,
+    rig: str = "vod",
 ) -> dict:
-    """Simulate ``sequences`` x ``frames`` paired frames into ``out`` (VoD layout, see writer.py).
+    """Simulate ``sequences`` x ``frames`` paired frames into ``out`` (VoD layout, see writer.py)
+    on the rig named ``rig`` (``rigs.SIM_RIGS``: ``vod`` or ``astyx``).
 
-    Returns the sequences.json document. Raises MsdnetError on bad arguments or a non-empty
-    ``out`` without ``overwrite``.
+    Returns the sequences.json document (with a ``rig`` key unless the rig is ``vod``, whose
+    files stay as they were before rigs existed). Raises MsdnetError on bad arguments or a
+    non-empty ``out`` without ``overwrite``.
     """
+    if rig not in SIM_RIGS:
+        raise MsdnetError(None, f"unknown rig {rig!r} (choose from {', '.join(SIM_RIGS)})")
+    sim_rig = SIM_RIGS[rig]
     if sequences < 1 or frames < 1:
         raise MsdnetError(None, f"need at least 1 sequence and 1 frame, got {sequences} x {frames}")
     if seed < 0:
@@ -55,13 +62,13 @@ def simulate_dataset(
     check_capacity(sequences, frames)
     root = Path(out)
     prepare_output(root, overwrite)
-    writer = VodWriter(root)
+    writer = VodWriter(root, sim_rig.mounting)
     stride = id_stride(frames)
     all_ids: list[list[str]] = []
     entries = []
     bar = tqdm(total=sequences * frames, unit="frame", desc="simulate", disable=not progress)
     for k in range(sequences):
-        sim = SequenceSim(seed, k, frames)
+        sim = SequenceSim(seed, k, frames, sim_rig=sim_rig)
         ids = [frame_id(k, f, stride) for f in range(frames)]
         for fr in sim.frames():
             writer.write_frame(ids[fr.index], fr.lidar, fr.radar, fr.poses)
@@ -94,6 +101,8 @@ def simulate_dataset(
         "loop_closure_rule": "nearest earlier frame >= 150 frames back within 5 m",
         "sequences": entries,
     }
+    if rig != "vod":
+        doc["rig"] = rig
     writer.write_sequences(doc)
     return doc
 
@@ -104,11 +113,19 @@ def simulate_dataset(
 @click.option("--frames", default=50, show_default=True, type=int, help="Frames per sequence (10 Hz).")
 @click.option("--seed", default=0, show_default=True, type=int, help="Seed: same seed, same bytes.")
 @click.option("--overwrite", is_flag=True, help="Replace a previous simulation in --out.")
+@click.option(
+    "--rig",
+    type=click.Choice(sorted(SIM_RIGS)),
+    default="vod",
+    show_default=True,
+    help="Vehicle: vod (HDL-64 + VoD-like radar) or astyx (VLP-16 + Astyx 6455-like radar; "
+    "read it with --dataset sim-astyx).",
+)
 @one_line_errors
-def simulate(out: Path, sequences: int, frames: int, seed: int, overwrite: bool) -> None:
+def simulate(out: Path, sequences: int, frames: int, seed: int, overwrite: bool, rig: str) -> None:
     """Simulate paired LiDAR / 4D-radar street sequences in the View-of-Delft layout."""
     start = time.perf_counter()
-    doc = simulate_dataset(out, sequences, frames, seed, overwrite)
+    doc = simulate_dataset(out, sequences, frames, seed, overwrite, rig=rig)
     elapsed = time.perf_counter() - start
     n = sequences * frames
     loops = sum(s["has_loop"] for s in doc["sequences"])

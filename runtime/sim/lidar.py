@@ -1,7 +1,9 @@
-"""LiDAR model: a 64-beam spinning scanner (HDL-64-like), ray-cast against the scene.
+"""LiDAR model: a spinning scanner ray-cast against the scene, HDL-64-like or VLP-16-like.
 
-- Beams: 32 upper lasers from +2.0 to -8.33 degrees and 32 lower ones from -8.83 to -24.9
-  degrees; one column every ``azimuth_step_deg`` over 360 degrees.
+- Beams (HDL-64, the VoD rig's default): 32 upper lasers from +2.0 to -8.33 degrees and 32 lower
+  ones from -8.83 to -24.9 degrees; one column every ``azimuth_step_deg`` over 360 degrees.
+  ``VLP16`` (the Astyx rig's): 16 lasers from +15 to -15 degrees, 2 degrees apart, one column
+  every 0.2 degrees (10 Hz), 100 m range.
 - Range: ``min_range`` to ``max_range``; Gaussian range noise (``range_noise`` m); a fraction
   ``dropout`` of returns lost at random, plus weak far returns (intensity under a floor that
   grows with range).
@@ -30,18 +32,33 @@ class LidarConfig:
     range_noise: float = 0.02  # m, 1-sigma Gaussian range noise
     dropout: float = 0.03  # fraction of returns lost at random
     n_sectors: int = 720  # azimuth bins of the ray caster's acceleration structure
+    beams_deg: tuple[float, ...] | None = None  # laser elevations, degrees, top first; None: HDL-64
 
 
-def beam_elevations() -> np.ndarray:
-    """(64,) float64 elevation angles of the lasers, degrees, top to bottom."""
+# Velodyne VLP-16 (Astyx rig): 16 lasers +15 .. -15 degrees every 2 degrees, 0.2 degree columns
+VLP16 = LidarConfig(
+    azimuth_step_deg=0.2,
+    max_range=100.0,
+    min_range=0.5,
+    range_noise=0.03,
+    dropout=0.25,
+    beams_deg=tuple(float(v) for v in np.linspace(15.0, -15.0, 16)),
+)
+
+
+def beam_elevations(cfg: LidarConfig | None = None) -> np.ndarray:
+    """(B,) float64 elevation angles of the lasers, degrees, top to bottom (B = 64 for the HDL-64
+    default, len(cfg.beams_deg) otherwise)."""
+    if cfg is not None and cfg.beams_deg is not None:
+        return np.asarray(cfg.beams_deg, dtype=np.float64)
     return np.concatenate([np.linspace(2.0, -8.33, 32), np.linspace(-8.83, -24.9, 32)])
 
 
 def beam_directions(cfg: LidarConfig) -> np.ndarray:
-    """(C * 64, 3) float64 unit ray directions in the LiDAR frame, column-major (az, beam)."""
-    el = np.radians(beam_elevations())  # (64,)
+    """(C * B, 3) float64 unit ray directions in the LiDAR frame, column-major (az, beam)."""
+    el = np.radians(beam_elevations(cfg))  # (B,)
     az = np.radians(np.arange(0.0, 360.0, cfg.azimuth_step_deg) - 180.0)  # (C,)
-    d = np.empty((len(az), len(el), 3))  # (C, 64, 3)
+    d = np.empty((len(az), len(el), 3))  # (C, B, 3)
     d[..., 0] = np.cos(az)[:, None] * np.cos(el)[None, :]
     d[..., 1] = np.sin(az)[:, None] * np.cos(el)[None, :]
     d[..., 2] = np.sin(el)[None, :]

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from msdnet.runtime.sim import lidar, radar, rig
+from msdnet.runtime.sim.rigs import SIM_RIGS, SimRig, astyx_rows
 from msdnet.runtime.sim.scene import Scene, build_scene
 from msdnet.runtime.sim.trajectory import Trajectory, drive, make_grid
 
@@ -38,7 +39,9 @@ class Frame:
 
     index: int  # frame number inside the sequence
     lidar: np.ndarray  # (N, 4) float32 [x, y, z, intensity], LiDAR frame
-    radar: np.ndarray  # (M, 7) float32 [x, y, z, rcs, v_r, v_r_compensated, time], radar frame
+    # (M, 7) float32 [x, y, z, rcs, v_r, v_r_compensated, time], radar frame (Astyx rig:
+    # column 3 holds mag and column 4 the Astyx v_r, see rigs.py)
+    radar: np.ndarray
     radar_source: np.ndarray  # (M,) int8 material id of a detection, or radar.*_GHOST / CLUTTER
     vehicle_to_world: np.ndarray  # (4, 4) T_world<-vehicle (world = map frame)
     poses: dict[str, np.ndarray]  # VoD pose keys -> (4, 4) camera poses T_<key frame><-camera
@@ -54,12 +57,16 @@ class SequenceSim:
         n_frames: int,
         lidar_cfg: lidar.LidarConfig | None = None,
         radar_cfg: radar.RadarConfig | None = None,
+        sim_rig: SimRig | None = None,
     ) -> None:
+        """Sequence ``index`` of ``seed``, ``n_frames`` long, on ``sim_rig`` (default: the VoD
+        rig); ``lidar_cfg`` / ``radar_cfg`` override the rig's sensor models."""
         self.seed, self.index, self.n_frames = seed, index, n_frames
+        self.rig: SimRig = sim_rig or SIM_RIGS["vod"]
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(index,)))
         loop = True if index == 0 else False if index == 1 else bool(rng.random() < 0.5)
         moving = True if index < 2 else bool(rng.random() < 0.7)
-        cruise = float(rng.uniform(4.0, 9.0))
+        cruise = float(rng.uniform(*self.rig.cruise_speed))
         busy = float(rng.uniform(0.7, 1.4))
         dist = cruise * n_frames * 0.1
         # loops: blocks small enough that circling one fits in the planned distance
@@ -73,8 +80,8 @@ class SequenceSim:
             (UTM_ORIGIN[0] + rng.uniform(-2e3, 2e3), UTM_ORIGIN[1] + rng.uniform(-2e3, 2e3), 0.0),
         )
         self.info = SequenceInfo(index, loop, moving, cruise, self.scene.n_moving, len(self.scene.prims))
-        self.lidar_cfg = lidar_cfg or lidar.LidarConfig()
-        self.radar = radar.RadarSim(radar_cfg or radar.RadarConfig())
+        self.lidar_cfg = lidar_cfg or self.rig.lidar
+        self.radar = radar.RadarSim(radar_cfg or self.rig.radar)
         self.lidar_dirs = lidar.beam_directions(self.lidar_cfg)
         self.odom_from_world = np.linalg.inv(self.vehicle_pose(0))
 
@@ -90,8 +97,8 @@ class SequenceSim:
         salt = int(fs.generate_state(1, np.uint64)[0])
         prims = self.scene.at(float(self.traj.time[f]))
         vehicle = self.vehicle_pose(f)
-        lidar_w = vehicle @ rig.lidar_in_vehicle()
-        radar_w = lidar_w @ rig.radar_in_lidar()
+        lidar_w = vehicle @ rig.lidar_in_vehicle(self.rig.mounting)
+        radar_w = lidar_w @ rig.radar_in_lidar(self.rig.mounting)
         cloud = lidar.scan(prims, lidar_w, self.lidar_dirs, self.lidar_cfg, rng, salt)
         yaw = float(self.traj.yaw[f])
         v_vehicle = self.traj.speed[f] * np.array([np.cos(yaw), np.sin(yaw), 0.0])
@@ -99,7 +106,9 @@ class SequenceSim:
         omega = float(self.traj.yaw_rate[f])
         v_radar = v_vehicle + np.array([-omega * lever[1], omega * lever[0], 0.0])
         points, source = self.radar.scan(prims, radar_w, v_radar, rng, salt ^ 0x5A5A5A5A)
-        cam_w = rig.camera_pose(vehicle)
+        if self.rig.astyx_columns:
+            points = astyx_rows(points, self.radar)
+        cam_w = rig.camera_pose(vehicle, self.rig.mounting)
         poses = {  # as in VoD, "xToCamera" is the camera pose in x: T_x<-camera
             "odomToCamera": self.odom_from_world @ cam_w,
             "mapToCamera": cam_w,

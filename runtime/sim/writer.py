@@ -4,6 +4,7 @@
     DIR/lidar/training/calib/<id>.txt      KITTI style; Tr_velo_to_cam = T_cam<-lidar (3x4)
     DIR/lidar/training/pose/<id>.json      odomToCamera, mapToCamera, UTMToCamera, one per line
     DIR/radar/training/velodyne/<id>.bin   float32 rows x y z rcs v_r v_r_compensated time
+                                           (--rig astyx: mag in the rcs column, Astyx v_r; rigs.py)
     DIR/radar/training/calib/<id>.txt      Tr_velo_to_cam = T_cam<-radar
     DIR/radar/training/pose/<id>.json      same poses as the LiDAR's
     DIR/{lidar,radar}/ImageSets/{train,val,full}.txt   frame ids, one per line
@@ -100,11 +101,11 @@ def pose_text(poses: dict[str, np.ndarray]) -> str:
 class VodWriter:
     """Writes frames and split files under one output folder."""
 
-    def __init__(self, out: Path) -> None:
+    def __init__(self, out: Path, mounting: rig.Rig = rig.VOD) -> None:
         self.out = out
         self.calib = {
-            "lidar": calib_text(rig.lidar_to_camera()).encode(),
-            "radar": calib_text(rig.radar_to_camera()).encode(),
+            "lidar": calib_text(rig.lidar_to_camera(mounting)).encode(),
+            "radar": calib_text(rig.radar_to_camera(mounting)).encode(),
         }
 
     def write_frame(
