@@ -19,13 +19,15 @@ from torch.utils.data import Dataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.training.config import AugmentConfig, ModelConfig
 
-DATASETS = ("vod", "astyx", "sim")  # --dataset choices; "sim" is the simulator's VoD layout
+# --dataset choices; "sim" is the simulator's VoD layout, "sim-astyx" its Astyx rig
+DATASETS = ("vod", "astyx", "sim", "sim-astyx")
 # Radar columns fed to the model per dataset (Astyx has magnitude instead of RCS and no
 # ego-motion-compensated velocity).
 RADAR_COLUMNS: dict[str, tuple[str, ...]] = {
     "vod": ("x", "y", "z", "rcs", "v_r_compensated"),
     "sim": ("x", "y", "z", "rcs", "v_r_compensated"),
     "astyx": ("x", "y", "z", "v_r", "mag"),
+    "sim-astyx": ("x", "y", "z", "v_r", "mag"),  # as Astyx: pretrain here, fine-tune on astyx
 }
 CACHE_BYTES = 2 << 30  # preprocessed frames kept in memory per process, at most
 
