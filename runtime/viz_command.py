@@ -10,7 +10,7 @@ from msdnet.runtime.datasets import DATASET_NAMES, open_dataset
 from msdnet.runtime.errors import one_line_errors
 from msdnet.runtime.grid import GRID_PRESETS
 from msdnet.runtime.preprocess import lidar_ground, preprocess_frame
-from msdnet.runtime.stats import compute_stats, format_stats
+from msdnet.runtime.stats import TARGETS, compute_stats, format_stats
 from msdnet.runtime.viz import render_bev
 
 DATASET_CHOICE = click.Choice(DATASET_NAMES)
@@ -70,8 +70,16 @@ def show(
 )
 @click.option("--preset", type=PRESET_CHOICE, default="paper", show_default=True, help="Grid.")
 @click.option("--radar-frames", type=click.IntRange(min=1), default=1, show_default=True)
+@click.option(
+    "--targets",
+    type=click.Choice(sorted(TARGETS)),
+    default=None,
+    help="Bands to judge against: vod or astyx (default: astyx for astyx / sim-astyx, else vod).",
+)
 @one_line_errors
-def stats(dataset: str, data: str, max_frames: int | None, preset: str, radar_frames: int) -> None:
+def stats(
+    dataset: str, data: str, max_frames: int | None, preset: str, radar_frames: int, targets: str | None
+) -> None:
     """Print the realism statistics (DESIGN.md section 2) of a dataset folder."""
     ds = open_dataset(dataset, data, radar_frames=radar_frames)
     n = len(ds) if max_frames is None else min(max_frames, len(ds))
@@ -79,4 +87,5 @@ def stats(dataset: str, data: str, max_frames: int | None, preset: str, radar_fr
     frames = (ds[int(i)] for i in tqdm(picks, desc="frames", unit="frame", leave=False))
     result = compute_stats(frames, GRID_PRESETS[preset])
     click.echo(f"{dataset} {data}: {result.frames} of {len(ds)} frames, {preset} grid region")
-    click.echo(format_stats(result))
+    name = targets or ("astyx" if dataset in ("astyx", "sim-astyx") else "vod")
+    click.echo(format_stats(result, TARGETS[name], "VoD" if name == "vod" else "Astyx"))
