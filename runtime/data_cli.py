@@ -1,9 +1,11 @@
-"""``msdnet-data``: simulate paired radar/LiDAR sequences, print statistics, render BEV pictures."""
+"""``msdnet-data``: simulate paired radar/LiDAR sequences, print statistics, render BEV pictures,
+pair a bag's radar and LiDAR into a training folder."""
 
 from __future__ import annotations
 
 import click
 
+from msdnet.runtime.pairing.command import pair
 from msdnet.runtime.sim.command import simulate
 from msdnet.runtime.viz_command import show, stats
 
@@ -16,3 +18,4 @@ def main() -> None:
 main.add_command(simulate)
 main.add_command(show)
 main.add_command(stats)
+main.add_command(pair)  # bag -> VoD-layout training folder (runtime/pairing)
