@@ -9,6 +9,7 @@ from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_
 from msdnet.benchmarks.fuzz import fuzz_command
 from msdnet.benchmarks.latency.cli import latency_command
 from msdnet.benchmarks.latency.steps import steps_command
+from msdnet.benchmarks.live import live_command
 from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
@@ -28,4 +29,5 @@ main.add_command(steps_command)  # Table III: the T_m sweep on a dataset split (
 main.add_command(stages_command)
 main.add_command(conditioning_command)
 main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)
+main.add_command(live_command)  # msdnet-node end to end on loopback (benchmarks/live.py)
 main.add_command(fuzz_command)  # mutated inputs through every reader (benchmarks/fuzz.py)

@@ -78,12 +78,14 @@ class NodeStats:
     dropped: int = 0  # scans replaced while waiting (latest-message-wins)
     bad: int = 0  # messages that could not be read or run
     latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    service: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # take -> publish
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def summary(self) -> dict[str, Any]:
         """Counters and latency percentiles in milliseconds (None before the first message)."""
         with self.lock:
             lat = np.asarray(self.latencies, dtype=np.float64) * 1e3
+            srv = np.asarray(self.service, dtype=np.float64) * 1e3
             body: dict[str, Any] = {
                 "received": self.received,
                 "published": self.published,
@@ -92,6 +94,10 @@ class NodeStats:
             }
         pct = {f"p{q}": float(np.percentile(lat, q)) if lat.size else None for q in (50, 90, 99)}
         body["latency_ms"] = {**pct, "max": float(lat.max()) if lat.size else None, "count": int(lat.size)}
+        body["service_ms"] = {  # one scan's own time (read, densify, publish), without the wait
+            "p50": float(np.percentile(srv, 50)) if srv.size else None,
+            "max": float(srv.max()) if srv.size else None,
+        }
         return body
 
     def line(self) -> str:
@@ -180,6 +186,7 @@ def serve(
         if item is None:
             continue
         sample, received_at, index = item
+        taken_at = time.perf_counter()
         sec, nsec = stamp_of(sample)
         label = f"message {index} (stamp {sec}.{nsec:09d}, frame {sample.header.frame_id!r})"
         try:
@@ -190,7 +197,9 @@ def serve(
             writer.write(dense_message(res.points, res.confidence, sample.header))
             with stats.lock:
                 stats.published += 1
-                stats.latencies.append(time.perf_counter() - received_at)
+                now = time.perf_counter()
+                stats.latencies.append(now - received_at)
+                stats.service.append(now - taken_at)
         except MsdnetError as err:
             with stats.lock:
                 stats.bad += 1
