@@ -175,13 +175,13 @@ def run_fuzz(
     folder.mkdir(parents=True, exist_ok=True)
     seeds = valid_inputs(folder / "seeds", seed)
     tallies: dict[str, Tally] = {}
-    for r_i, reader in enumerate(readers):
+    for reader in readers:
         tally = tallies[reader] = Tally()
         work = folder / reader
         work.mkdir(exist_ok=True)
         start = time.perf_counter()
         for case in range(cases):
-            rng = np.random.default_rng([seed, r_i, case])
+            rng = np.random.default_rng([seed, READERS.index(reader), case])  # replayable alone
             name, valid = seeds[reader][case % len(seeds[reader])]
             data = mutate(valid, rng)
             where = f"{reader} case {case} (seed {seed}, from {name})"

@@ -87,7 +87,7 @@ def resolve_fields(msg: Any, columns: Sequence[str], mapping: dict[str, str], to
     by_canon: dict[str, list[Any]] = {}
     for f in msg.fields:
         by_canon.setdefault(canonical_column(f.name), []).append(f)
-    have = " ".join(by_name) or "none"
+    have = " ".join(n if n.isprintable() and n.split() == [n] else repr(n) for n in by_name) or "none"
     picked = []
     for col in columns:
         same = by_canon.get(col, [])

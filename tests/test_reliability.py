@@ -241,3 +241,13 @@ def test_killed_bag_writers_temp_folder_removed_by_the_next_run(tmp_path):
     r = _infer(bag, "--topic", TOPIC, "--out", out, *RUN)
     assert r.exit_code == 0, r.output
     assert sorted(p.name for p in out.parent.iterdir()) == sorted(["dense", live.name])
+
+
+def test_field_names_with_odd_characters_stay_on_one_line():
+    """Found by msdnet-bench fuzz (msg case 1551, seed 1): a field name holding a newline."""
+    from msdnet.runtime.rosbag_io import resolve_fields
+
+    msg = _msg(_points(5), ("x\n", "y", "z", "rcs", "v_r", "v_r_compensated", "time"))
+    with pytest.raises(MsdnetError) as err:
+        resolve_fields(msg, ("x", "intensity"), {}, TOPIC)
+    assert "\n" not in str(err.value) and "(fields: 'x\\n' y z rcs" in str(err.value)
