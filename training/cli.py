@@ -258,6 +258,12 @@ def _plan(
     help="Student: how Eq. 14 reaches the denoiser's weights through the loop: detach (Eq. 10 only), "
     "joint (Eq. 15), joint:K (last K loop steps), joint:K:R or joint::R (scaled to R x Eq. 10's norm).",
 )
+@click.option(
+    "--loop-steps",
+    type=int,
+    default=None,
+    help="Student: DDIM steps T_m of the loop, in training and the exported default [preset: 50].",
+)
 @click.option("--denoiser-hidden", type=int, default=None, help="Student: light denoiser width [32].")
 @click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
 @click.option(
@@ -300,6 +306,7 @@ def main(
     ablate: tuple[str, ...],
     latent_frames: int,
     ema: float | None,
+    loop_steps: int | None,
     denoiser_grad: str | None,
     denoiser_hidden: int | None,
     time_embed: int | None,
@@ -362,6 +369,12 @@ def main(
             raise MsdnetError("--cond-dropout", f"is an R2LDM share in [0, 1), got {cond_dropout} for {kind}")
         cfg = replace(cfg, r2ldm_cond_dropout=cond_dropout)
     cfg = _student_options(cfg, kind, denoiser_grad, denoiser_hidden, time_embed)
+    if loop_steps is not None:
+        if kind != "student" or not 1 <= loop_steps <= cfg.diffusion.start_step:
+            raise MsdnetError("--loop-steps", f"is a student's T_m in 1..m ({cfg.diffusion.start_step})")
+        cfg = replace(
+            cfg, train_sample_steps=loop_steps, diffusion=replace(cfg.diffusion, sample_steps=loop_steps)
+        )
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")
