@@ -2,8 +2,11 @@
 
 QoS (what ROS 2 sensor drivers and RViz2 match):
 
-- the subscription is best effort, keep last 1, volatile: it matches a publisher with the ROS 2
-  sensor-data profile (``rclcpp::SensorDataQoS``: best effort, keep last 5) and a reliable one;
+- the subscription is best effort, volatile: it matches a publisher with the ROS 2 sensor-data
+  profile (``rclcpp::SensorDataQoS``: best effort, keep last 5) and a reliable one. Its history
+  keeps the last ``READER_DEPTH`` samples until the receive thread takes them (history depth is
+  not part of QoS matching), so a scan is never lost uncounted while that thread waits for the
+  CPU; the node itself keeps one waiting scan (``runtime/live/node``) and counts the others;
 - the ``/dense`` publication is reliable, keep last 1, volatile: RViz2's PointCloud2 display
   (reliable, keep last 5 by default) and best-effort subscribers both match it, and keep-last
   history never blocks the node on a slow subscriber.
@@ -19,6 +22,7 @@ from typing import Any
 
 from msdnet.runtime.errors import MsdnetError
 
+READER_DEPTH = 8  # samples a reader holds until its thread takes them (history is not matched)
 MAX_DOMAIN_ID = 232  # Cyclone: the ports of higher domain ids overflow (7400 + 250 * id)
 LOOPBACK_XML = """<?xml version="1.0" encoding="UTF-8"?>
 <CycloneDDS xmlns="https://cdds.io/config">
@@ -67,13 +71,13 @@ def check_domain(domain_id: int) -> int:
     return domain_id
 
 
-def sensor_qos(reliable: bool) -> Any:
-    """Keep last 1, volatile, XCDR1; best effort (subscription) or reliable (publication)."""
+def sensor_qos(reliable: bool, depth: int = 1) -> Any:
+    """Keep last ``depth``, volatile, XCDR1; best effort (subscription) or reliable (publication)."""
     _, _, _, qos, _, _, util = cyclonedds()
     rel = qos.Policy.Reliability.Reliable(util.duration(milliseconds=100))
     return qos.Qos(
         rel if reliable else qos.Policy.Reliability.BestEffort,
-        qos.Policy.History.KeepLast(1),
+        qos.Policy.History.KeepLast(depth),
         qos.Policy.Durability.Volatile,
         qos.Policy.DataRepresentation(use_cdrv0_representation=True),
     )
@@ -101,10 +105,11 @@ class Endpoints:
             self._topics[dds_name] = topic.Topic(self.participant, dds_name, PointCloud2)
         return self._topics[dds_name]
 
-    def reader(self, dds_name: str, reliable: bool = False) -> Any:
-        """A keep-last-1 PointCloud2 reader of ``dds_name`` (``rt/...``), best effort unless told."""
+    def reader(self, dds_name: str, reliable: bool = False, depth: int = READER_DEPTH) -> Any:
+        """A PointCloud2 reader of ``dds_name`` (``rt/...``), best effort unless told, keeping the
+        last ``depth`` samples until they are taken."""
         _, _, _, _, sub, _, _ = cyclonedds()
-        return sub.DataReader(self.participant, self._topic(dds_name), qos=sensor_qos(reliable))
+        return sub.DataReader(self.participant, self._topic(dds_name), qos=sensor_qos(reliable, depth))
 
     def writer(self, dds_name: str, reliable: bool = True) -> Any:
         """A keep-last-1 PointCloud2 writer of ``dds_name`` (reliable unless told otherwise)."""
