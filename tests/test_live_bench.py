@@ -23,7 +23,8 @@ def test_short_storm(vod_root: Path, tmp_path: Path) -> None:
     ctx["next_domain"] = lambda: domain
     s = storm_run(ctx, hz=40.0, seconds=3.0, start_ns=1_700_000_000 * 10**9)
     assert s["sent"] == 120 and s["replies"] + s["drops"] == 120
-    assert s["node_dropped"] > 0 and s["drops"] >= s["node_dropped"]  # the node cannot serve 40 Hz
+    # the node cannot serve 40 Hz; it counts every scan it dropped (its count also holds the restart's)
+    assert 0 < s["drops"] <= s["node_dropped"]
     assert s["latency_bounded"], s
     assert s["restarted_publisher_served"] >= 1 and s["sigterm_within_1s"], s
     doc = {"model": "sim-lite", "threads": 1, "note": "test", "machine": {}, "load_average": [0.0]}
