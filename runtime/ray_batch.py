@@ -21,7 +21,9 @@ rewrites a loopback address to the machine's interface address), with the dashbo
 stats off (``RAY_USAGE_STATS_ENABLED=0`` unless set) and no cloud-metadata probe: Ray's head
 processes see a private ``HOME`` holding a ``ray_bootstrap_config.yaml`` that names the local
 provider (without one, Ray's usage module asks 169.254.169.254 and metadata.google.internal
-which cloud it runs on); the workers keep the real ``HOME``. A loopback ADDRESS
+which cloud it runs on); the instance's workers inherit that ``HOME`` too (a job-level
+``runtime_env`` restoring the real one made the workers crash at start with Ray 2.60), and the
+folder is removed when the instance shuts down. A loopback ADDRESS
 (``127.0.0.1:6379``) is kept as given. An ADDRESS where nothing answers fails after ``timeout``
 seconds (``--ray-timeout``, default 30) in one line naming it, instead of Ray's endless retries.
 
@@ -114,7 +116,6 @@ def local_instance(num_cpus: int | None = None) -> Iterator[None]:
     real_home = os.environ.get("HOME")
     try:
         (home / BOOTSTRAP_CONFIG).write_text(LOCAL_PROVIDER)
-        workers = {"env_vars": {"HOME": real_home}} if real_home else None
         os.environ["HOME"] = str(home)  # what the head processes started now inherit
         try:
             with _loopback_kept(ray):
@@ -122,7 +123,6 @@ def local_instance(num_cpus: int | None = None) -> Iterator[None]:
                     address="local",
                     _node_ip_address=LOOPBACK,
                     num_cpus=num_cpus,
-                    runtime_env=workers,
                     **_init_options(),
                 )
         finally:

@@ -25,12 +25,14 @@ ACTOR = "MapWorker(MapBatches(_InferActor))"
 
 @pytest.fixture(scope="module")
 def local_ray():
-    """A 2-CPU Ray instance owned by this test process (started once for the module)."""
+    """A 2-CPU Ray instance owned by this test process (started once for the module), on 127.0.0.1
+    with usage stats off and no cloud-metadata probe, as ``--ray`` starts one (ray_batch)."""
+    from msdnet.runtime.ray_batch import local_instance
+
     start = time.perf_counter()
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
-    print(f"ray.init: {time.perf_counter() - start:.1f} s")  # 6-9 s on 2 busy cores
-    yield
-    ray.shutdown()
+    with local_instance(num_cpus=2):
+        print(f"ray.init: {time.perf_counter() - start:.1f} s")  # 6-9 s on 2 busy cores
+        yield
 
 
 @pytest.fixture(scope="module")
