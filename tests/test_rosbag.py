@@ -192,7 +192,7 @@ def test_bad_message_is_counted_and_the_rest_go_on(frames, file_mode, tmp_path):
     r = _infer(broken, "--topic", TOPIC, "--out", out, *RUN)
     assert r.exit_code == 1, r.output
     assert "messages: 2 ok, 1 failed" in r.output
-    assert f"FAILED {broken}: {TOPIC} message 1 at {src[TOPIC][1][0]} ns: ValueError: data has" in r.output
+    assert f"FAILED {broken}: {TOPIC} message 1 at {src[TOPIC][1][0]} ns: data has" in r.output
     got = read_bag(out)[1]
     assert len(got[TOPIC]) == 3 and len(got[TOPIC + "/dense"]) == 2
     for (t, _, msg), i in zip(got[TOPIC + "/dense"], (0, 2), strict=True):
