@@ -58,9 +58,13 @@ def steps_markdown(doc: dict[str, Any]) -> str:
         f"Command: `{doc['command']}`",
         "",
         f"Machine: {m['cpu']} ({m['logical_cores']} logical cores), {doc['threads']} threads, provider "
-        f"`{doc['provider']}`; load average {load}. The machine was shared with other work (two "
-        "trainings), so the ms are upper bounds; their ratios come from one run (T_m round-robin per "
-        "frame). Threshold "
+        f"`{doc['provider']}`; load average {load}"
+        + (
+            " (the machine was shared with other work, so the ms are upper bounds)"
+            if max(m["loadavg_start"][0], m["loadavg_end"][0]) > m["logical_cores"] * 0.75
+            else ""
+        )
+        + ". The ms ratios come from one run (T_m round-robin per frame). Threshold "
         f"{doc['threshold']:.4g} ({doc['threshold_note']}), seed {ev['seed']}, gate {doc['gate']}.",
         "",
         f"Scored like `msdnet-bench quality`: prediction and LiDAR cropped to the grid box and the "
