@@ -46,7 +46,14 @@ from tqdm import tqdm
 
 import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.infer_guards import check_out, clamp_workers, prepare_out, usable_cores, watch_parent
+from msdnet.runtime.infer_guards import (
+    check_model_options,
+    check_out,
+    clamp_workers,
+    prepare_out,
+    usable_cores,
+    watch_parent,
+)
 from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_dense
 from msdnet.runtime.layouts import LAYOUTS, columns_for, resolve_bin_columns
 
@@ -265,19 +272,9 @@ def main(
     verbose: bool = False,
 ) -> None:
     """Densify radar point clouds with an exported MSDNet (or R2LDM) model."""
-    from msdnet.runtime.artifact import load_artifact
-    from msdnet.runtime.ddim import timesteps
-    from msdnet.runtime.session import resolve_providers
 
     model_dir = resolve_model(model)
-    artifact = load_artifact(model_dir, trusted_key)  # refuse a bad model before any input
-    resolve_providers(provider)
-    if threshold is not None and not 0.0 < threshold < 1.0:
-        raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
-    try:
-        timesteps(artifact.diffusion, steps)
-    except ValueError as err:
-        raise MsdnetError("--steps", str(err)) from None
+    artifact = check_model_options(model_dir, trusted_key, provider, threshold, steps)
     opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
     opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
     opts["bin_columns"], _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin

@@ -8,6 +8,8 @@
 - ``clamp_workers``: no more worker processes than CPU cores (with a warning) or files.
 - ``watch_parent``: a worker process exits as soon as its parent is gone (a SIGKILLed
   ``msdnet-infer`` leaves no worker running).
+- ``check_model_options``: the model, provider, threshold and step count every front-end
+  (``msdnet-infer``, ``msdnet-node``) checks before any input is read.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -24,6 +27,26 @@ from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io import clean_stale_temps, temp_name, write_error
 
 PARENT_POLL_S = 0.2  # how often a worker checks that its parent is alive
+
+
+def check_model_options(
+    model_dir: Path, trusted_key: Path | None, provider: str, threshold: float | None, steps: int | None
+) -> Any:
+    """Load the artifact (hashes, signature) and check ``--provider``, ``--threshold`` and
+    ``--steps`` against it; -> the ``Artifact``. Each problem is one ``MsdnetError`` line."""
+    from msdnet.runtime.artifact import load_artifact
+    from msdnet.runtime.ddim import timesteps
+    from msdnet.runtime.session import resolve_providers
+
+    artifact = load_artifact(model_dir, trusted_key)  # refuse a bad model before any input
+    resolve_providers(provider)
+    if threshold is not None and not 0.0 < threshold < 1.0:
+        raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
+    try:
+        timesteps(artifact.diffusion, steps)
+    except ValueError as err:
+        raise MsdnetError("--steps", str(err)) from None
+    return artifact
 
 
 def check_out(out: Path, inputs: Sequence[Path]) -> None:

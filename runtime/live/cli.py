@@ -74,27 +74,18 @@ def main(
     trusted_key: Path | None,
 ) -> None:
     """Densify a ROS 2 radar PointCloud2 topic live, over DDS (no ROS install)."""
-    from msdnet.runtime.artifact import load_artifact
-    from msdnet.runtime.ddim import timesteps
     from msdnet.runtime.infer_cli import resolve_model
+    from msdnet.runtime.infer_guards import check_model_options
     from msdnet.runtime.live.dds import check_domain, cyclonedds
     from msdnet.runtime.live.idl import dds_topic
     from msdnet.runtime.live.node import NodeConfig, serve, write_stats
     from msdnet.runtime.pipeline import Pipeline
     from msdnet.runtime.rosbag_io import parse_field_map
-    from msdnet.runtime.session import resolve_providers
 
     cyclonedds()  # the missing-extra line before anything else
     dds_topic(topic)
     check_domain(domain_id)
-    artifact = load_artifact(resolve_model(model), trusted_key)
-    resolve_providers(provider)
-    if threshold is not None and not 0.0 < threshold < 1.0:
-        raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
-    try:
-        timesteps(artifact.diffusion, steps)
-    except ValueError as err:
-        raise MsdnetError("--steps", str(err)) from None
+    artifact = check_model_options(resolve_model(model), trusted_key, provider, threshold, steps)
     parse_field_map(fields, artifact.inputs.columns)
     if stats_json is not None and stats_json.is_dir():
         raise MsdnetError(stats_json, "is a folder; --stats-json takes a file path")
