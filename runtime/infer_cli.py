@@ -52,16 +52,16 @@ from msdnet.runtime.infer_guards import (
     clamp_workers,
     prepare_out,
     usable_cores,
-    watch_parent,
 )
-from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS, read_cloud, write_dense
-from msdnet.runtime.layouts import LAYOUTS, columns_for, resolve_bin_columns
+from msdnet.runtime.infer_worker import WORKER, _init_worker, _run_one
+from msdnet.runtime.io import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS
+from msdnet.runtime.layouts import LAYOUTS, resolve_bin_columns
 
 BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 EXIT_SOME_FAILED = 1
 
-_WORKER: dict[str, Any] = {}  # per-process pipeline and settings (worker processes)
+_WORKER = WORKER  # per-process pipeline and settings (runtime/infer_worker)
 
 
 def resolve_model(model: Path | None) -> Path:
@@ -105,50 +105,6 @@ def output_paths(files: list[Path], out: Path, fmt: str) -> list[Path]:
             raise MsdnetError(dst, f"inputs {seen[dst]} and {src} would write the same output")
         seen[dst] = src
     return targets
-
-
-def _init_worker(
-    model: str, provider: str, threads: int | None, opts: dict[str, Any], parent: int, key: str | None
-) -> None:
-    from msdnet.runtime.artifact import load_artifact
-    from msdnet.runtime.pipeline import Pipeline
-
-    watch_parent(parent)  # exit when msdnet-infer is killed: no orphaned workers
-    _WORKER["pipe"] = Pipeline(load_artifact(model, key), provider=provider, threads=threads)
-    _WORKER["opts"] = opts
-
-
-def _run_one(src: str, dst: str) -> dict[str, Any]:
-    """Process one file in this process's pipeline; never raises (errors are reported)."""
-    pipe, opts = _WORKER["pipe"], _WORKER["opts"]
-    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0, "dropped": 0}
-    try:
-        start = time.perf_counter()
-        cloud = read_cloud(src, columns=columns_for(src, opts.get("bin_columns")))
-        row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
-        res = pipe(
-            cloud,
-            steps=opts["steps"],
-            threshold=opts["threshold"],
-            seed=opts["seed"],
-            keep_radar=opts["keep_radar"],
-        )
-        write_dense(dst, res.points, res.confidence, opts["fmt"])
-        if opts["png"]:
-            from msdnet.runtime.viz import render_bev
-
-            layers = [(res.points, "#555555", "MSDNet dense", 0.5), (cloud.xyz, "#d62728", "radar", 6.0)]
-            render_bev(Path(dst).with_suffix(".png"), layers, pipe.artifact.grid, Path(src).name)
-        notes = list(res.notes)
-        if len(cloud) == 0 and cloud.dropped_nonfinite:  # not an "empty scan": every row was bad
-            notes = [f"all {cloud.dropped_nonfinite} rows are NaN/Inf: empty output"]
-        row.update(points_out=len(res.points), notes=notes)
-        row["seconds"] = time.perf_counter() - start
-    except MsdnetError as err:
-        row["error"] = str(err) if err.path else f"{src}: {err}"
-    except Exception as err:  # one bad file must not stop the batch
-        row["error"] = f"{src}: {type(err).__name__}: {' '.join(str(err).split())[:200]}"
-    return row
 
 
 def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple[str, int]:

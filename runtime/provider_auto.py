@@ -35,15 +35,15 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import onnxruntime as ort
 
 from msdnet.runtime import onnx_spec
 
-if TYPE_CHECKING:
-    from msdnet.runtime.pipeline import Pipeline
+# a runtime.pipeline.Pipeline; not imported, because the pipeline imports this module
+Pipeline = Any
 
 ONNXRUNTIME, OPENVINO = "onnxruntime", "openvino"
 REPEATS = 5  # interleaved timed blocks per engine and graph

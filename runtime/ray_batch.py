@@ -4,7 +4,7 @@ Ray Data (``[ray]`` extra) turns the (input, output) pairs into a dataset of one
 (one block per file) and runs ``map_batches`` with a pool of actors: each actor builds ONE
 :class:`~msdnet.runtime.pipeline.Pipeline` with ``threads`` intra-op threads (``--threads``,
 default 1 under ``--ray``; the actor reserves that many CPUs) and runs the file mode's own
-per-file function (``infer_cli._run_one``: read, densify, atomic write), so the bytes equal a
+per-file function (``infer_worker._run_one``: read, densify, atomic write), so the bytes equal a
 local run at the same thread count and the rows are the ones the local summary counts. The
 model's verified bytes travel to the actors with the task, so only the input and output paths
 have to be visible to every node (a shared file system), and msdnet must be installed there.
@@ -66,11 +66,11 @@ class _InferActor:
     """One Pipeline per actor; ``__call__`` runs a batch of (src, dst) rows through ``_run_one``."""
 
     def __init__(self, artifact: Any, provider: str, threads: int, opts: dict[str, Any]) -> None:
-        from msdnet.runtime import infer_cli
+        from msdnet.runtime import infer_worker
         from msdnet.runtime.pipeline import Pipeline
 
-        infer_cli._WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), opts=opts)
-        self._run = infer_cli._run_one
+        infer_worker.WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), opts=opts)
+        self._run = infer_worker._run_one
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         rows = [self._run(str(s), str(d)) for s, d in zip(batch["src"], batch["dst"], strict=True)]
@@ -220,7 +220,7 @@ def run_ray(
     bar: Any = None,
     timeout: float = DEFAULT_TIMEOUT_S,
 ) -> list[dict[str, Any]]:
-    """Run every (src, dst) job on Ray actors; -> rows in job order (as ``infer_cli._run_one``).
+    """Run every (src, dst) job on Ray actors; -> rows in job order (as ``infer_worker._run_one``).
     ``timeout``: seconds ``address`` may take to answer (not used for ``local``)."""
     with _connected(address, timeout):
         return _run(artifact, provider, threads, jobs, opts, bar)

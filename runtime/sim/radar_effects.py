@@ -7,15 +7,12 @@ here are called from :class:`msdnet.runtime.sim.radar.RadarSim` and take its con
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from msdnet.runtime.sim import materials as mt
+from msdnet.runtime.sim.radar_config import RadarConfig
 from msdnet.runtime.sim.raycast import BOX, COS, CX, CY, KIND, MAT, SIN, Z1, A, B
-
-if TYPE_CHECKING:
-    from msdnet.runtime.sim.radar import RadarConfig
 
 
 def _mix(x: np.ndarray) -> np.ndarray:
