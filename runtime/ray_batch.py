@@ -79,6 +79,9 @@ class _InferActor:
 
 def _ray() -> Any:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # before Ray starts anything
+    # a local head on a loaded 2-core machine can take over Ray's default 30 s to bind its GCS
+    # port (seen in CI next to a training: "Timed out waiting for file .../gcs_server_port")
+    os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
     try:
         import ray
     except ImportError:
