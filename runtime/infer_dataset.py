@@ -29,6 +29,7 @@ from tqdm import tqdm
 from msdnet.runtime.datasets import open_dataset
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GridConfig
+from msdnet.runtime.infer_worker import densify
 from msdnet.runtime.io import DENSE_COLUMNS, atomic_output, write_dense
 from msdnet.runtime.pipeline import Pipeline
 from msdnet.runtime.preprocess import preprocess_frame
@@ -145,13 +146,7 @@ def _run_frame(
     grid = pipe.artifact.grid
     frame = preprocess_frame(ds.load(fid), grid)
     start = time.perf_counter()
-    res = pipe(
-        frame.radar,
-        steps=opts["steps"],
-        threshold=opts["threshold"],
-        seed=opts["seed"],
-        keep_radar=opts.get("keep_radar", False),
-    )
+    res = densify(pipe, frame.radar, opts)
     seconds = time.perf_counter() - start
     dst = out / f"{fid}.{opts['fmt']}"
     write_dense(dst, res.points, res.confidence, opts["fmt"])

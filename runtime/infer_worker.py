@@ -3,6 +3,8 @@ its Ray actors (runtime/ray_batch.py), so that every mode writes the same bytes.
 
 ``WORKER`` holds the process's Pipeline and options (``pipe``, ``opts``); ``_run_one(src, dst)``
 reads one scan, densifies it, writes it atomically and returns its summary row, never raising.
+``densify(pipe, cloud, opts)`` is the one Pipeline call of every ``msdnet-infer`` mode (files,
+``--dataset``, bags), so the options reach the pipeline the same way in each.
 """
 
 from __future__ import annotations
@@ -17,6 +19,18 @@ from msdnet.runtime.io import read_cloud, write_dense
 from msdnet.runtime.layouts import columns_for
 
 WORKER: dict[str, Any] = {}  # per-process pipeline and settings (worker processes, Ray actors)
+
+
+def densify(pipe: Any, cloud: Any, opts: dict[str, Any]) -> Any:
+    """``pipe(cloud, ...)`` with the run's ``steps``, ``threshold``, ``seed`` and ``keep_radar``
+    (off when absent) from ``opts``; -> the pipeline's ``Result``."""
+    return pipe(
+        cloud,
+        steps=opts["steps"],
+        threshold=opts["threshold"],
+        seed=opts["seed"],
+        keep_radar=opts.get("keep_radar", False),
+    )
 
 
 def _init_worker(
@@ -38,13 +52,7 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
         start = time.perf_counter()
         cloud = read_cloud(src, columns=columns_for(src, opts.get("bin_columns")))
         row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
-        res = pipe(
-            cloud,
-            steps=opts["steps"],
-            threshold=opts["threshold"],
-            seed=opts["seed"],
-            keep_radar=opts["keep_radar"],
-        )
+        res = densify(pipe, cloud, opts)
         write_dense(dst, res.points, res.confidence, opts["fmt"])
         if opts["png"]:
             from msdnet.runtime.viz import render_bev

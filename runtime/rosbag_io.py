@@ -39,6 +39,7 @@ from tqdm import tqdm
 
 from msdnet.runtime.bag_guards import bag_write_error, prepare_bag_out, storage_of
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.infer_worker import densify
 from msdnet.runtime.io import DENSE_COLUMNS, MAX_POINTS, cloud_from_array, temp_name, write_error
 from msdnet.runtime.pointcloud import canonical_column
 
@@ -297,13 +298,7 @@ def _run_message(
         start = time.perf_counter()
         msg, cloud = message_cloud(reader.deserialize, raw, pipe.columns, mapping, label)
         row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
-        res = pipe(
-            cloud,
-            steps=opts["steps"],
-            threshold=opts["threshold"],
-            seed=opts["seed"],
-            keep_radar=opts["keep_radar"],
-        )
+        res = densify(pipe, cloud, opts)
         dense = np.concatenate([res.points, res.confidence[:, None]], axis=1)  # (M, 4)
         stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
         out = make_pointcloud2(store, dense, DENSE_COLUMNS, stamp, msg.header.frame_id)
