@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -18,27 +19,54 @@ from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.pipeline import Pipeline
 from msdnet.training.head import ReconHead
+from msdnet.training.head_sparse import build_head
 from msdnet.training.models import bev_shape
 
 ODD = GridConfig((0.0, 0.0, 0.0, 2.2, 1.8, 1.5), (0.2, 0.2, 0.3))  # 11 x 9 x 5: odd on every axis
 
 
-def test_sparse_children_equal_packed() -> None:
+def _gate_occupancy(head: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """Every half-scale voxel's gate occupancy, from the dense multi-scale outputs: its own
+    occupancy (ReconHead), or the smaller of its own and its 1/4 parent's (SparseReconHead)."""
+    (l4, _), (l2, _), _ = head.multi_scale(x)
+    own = torch.sigmoid(l2)[0, 0]  # (D2, H2, W2)
+    if isinstance(head, ReconHead):
+        return own.reshape(-1)
+    d2, h2, w2 = own.shape
+    up = torch.sigmoid(l4)[0, 0].repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)
+    return torch.minimum(own, up[:d2, :h2, :w2]).reshape(-1)
+
+
+@pytest.mark.parametrize("kind", ["dense", "sparse"])
+def test_sparse_children_equal_packed(kind: str) -> None:
     torch.manual_seed(0)
-    cfg = tiny_config()
-    head = ReconHead(cfg).eval()
+    cfg = dataclasses.replace(tiny_config(), head_kind=kind)
+    head = build_head(cfg).eval()
     x = torch.randn(1, *bev_shape(cfg))
     with one_torch_thread(), torch.no_grad():
         occ, off = head.packed(x)  # (1, 8, D2, H2, W2), (1, 8, 3, D2, H2, W2)
         s_occ, s_off, vox, g_occ = head.sparse(x, torch.zeros(1))
-        half = torch.sigmoid(head.occ[1](head._trunk(x)[1])).reshape(-1)
-        k_occ, _, k_vox, k_g = head.sparse(x, torch.tensor([0.5]))
+        half = _gate_occupancy(head, x)
+        gate = torch.quantile(half, 0.6).reshape(1)
+        k_occ, _, k_vox, k_g = head.sparse(x, gate)
     assert vox.tolist() == list(range(occ[0, 0].numel()))  # gate 0 keeps every voxel, in order
     torch.testing.assert_close(s_occ, occ.reshape(8, -1).t(), rtol=0, atol=1e-6)
     torch.testing.assert_close(s_off, off.reshape(8, 3, -1).permute(2, 0, 1), rtol=0, atol=1e-6)
-    torch.testing.assert_close(g_occ, half)
-    assert torch.equal(k_vox, torch.nonzero(half > 0.5).reshape(-1)) and 0 < len(k_vox) < len(vox)
-    assert torch.all(k_g > 0.5) and torch.equal(k_occ, s_occ[k_vox])
+    torch.testing.assert_close(g_occ, half, rtol=0, atol=1e-6)
+    assert torch.equal(k_vox, torch.nonzero(half > gate).reshape(-1)) and 0 < len(k_vox) < len(vox)
+    assert torch.all(k_g > gate) and torch.equal(k_occ, s_occ[k_vox])
+
+
+def test_sparse_head_is_per_voxel_below_the_coarsest_level() -> None:
+    """Only the 1/8 and 1/4 levels have 3x3x3 kernels and volume norms; every layer below works
+    per voxel (which is what lets ``sparse`` compute any subset of voxels exactly)."""
+    head = build_head(dataclasses.replace(tiny_config(), head_kind="sparse"))
+    spatial = {
+        n for n, m in head.named_modules() if isinstance(m, torch.nn.Conv3d) and m.kernel_size != (1, 1, 1)
+    }
+    volume = {n for n, m in head.named_modules() if isinstance(m, torch.nn.GroupNorm)}
+    assert spatial == {"conv8.0", "conv8b.0", "post4.body.2"}
+    assert volume == {"conv8.1", "conv8b.1", "post4.body.0", "post4.body.4"}
 
 
 @pytest.mark.parametrize("grid", [GRID_PRESETS["tiny"], ODD], ids=["tiny", "odd"])
@@ -95,7 +123,7 @@ def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
         gate = keep_all_gate(occ, gate_occ, thr)
         pipe.gate = gate
         kept = pipe(scan, threshold=thr, steps=4)
-        pipe.gate = float(np.quantile(gate_occ, 0.7))
+        pipe.gate = float(np.quantile(gate_occ[gate_occ > gate], 0.5))  # above the keep-all gate
         gated = pipe(scan, threshold=thr, steps=4)
     finally:
         pipe.gate = None

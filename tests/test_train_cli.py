@@ -210,3 +210,46 @@ def test_init_starts_a_new_run_from_a_checkpoints_weights(teacher_run, astyx_roo
         ],
     )
     assert r.exit_code == 2 and "--init config differs" in r.output
+
+
+def test_new_head_on_a_trained_encoder_then_students_keep_their_weights(astyx_root, tmp_path):
+    """``--head sparse --head-only --init DENSE_TEACHER``: the encoder and S2D stay as they were
+    (the students' distillation target), the head changes; a student then takes its own weights
+    from ``--init`` and the new frozen teacher from ``--teacher``."""
+    one = [*_astyx(astyx_root), "--epochs", "1"]
+    dense, sparse = tmp_path / "dense", tmp_path / "sparse"
+    _train(["teacher", *one, "--head", "dense", "--out", str(dense)])
+    _train(
+        [
+            "teacher",
+            *one,
+            "--init",
+            str(dense / "best"),
+            "--head",
+            "sparse",
+            "--head-only",
+            "--out",
+            str(sparse),
+        ]
+    )
+    a, a_cfg, _ = load_checkpoint(dense / "best")
+    b, b_cfg, b_state = load_checkpoint(sparse / "best")
+    assert (a_cfg.head_kind, b_cfg.head_kind, b_state.train.head_only) == ("dense", "sparse", True)
+    sa, sb = a.state_dict(), b.state_dict()
+    assert all(torch.equal(sa[k], sb[k]) for k in sa if k.startswith(("encoder.", "s2d.")))
+    assert any(not torch.equal(sa[k], sb[k]) for k in sa if k.startswith("head.") and k in sb)
+    s_old, s_new = tmp_path / "s_old", tmp_path / "s_new"
+    _train(["student", *one, "--head", "dense", "--teacher", str(dense / "best"), "--out", str(s_old)])
+    _train(
+        ["student", *one, "--lr", "1e-9", "--teacher", str(sparse / "best"), "--init", str(s_old / "best")]
+        + ["--out", str(s_new)]
+    )
+    old, new = (
+        load_checkpoint(s_old / "best")[0].state_dict(),
+        load_checkpoint(s_new / "best")[0].state_dict(),
+    )
+    own = [k for k in old if not k.startswith("teacher.") and old[k].is_floating_point()]
+    assert own and max((new[k] - old[k]).abs().max().item() for k in own) < 1e-3  # taken from --init
+    assert all(torch.equal(new[k], sb[k[len("teacher.") :]]) for k in new if k.startswith("teacher."))
+    r = CliRunner().invoke(main, ["student", *one, "--head-only", "--out", str(tmp_path / "x")])
+    assert r.exit_code == 2 and "--head-only" in r.output

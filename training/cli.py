@@ -63,6 +63,7 @@ NOT_TEACHER = (
     "use_adapter",
     "diffusion",
 )
+HEAD_KINDS = ("dense", "sparse")  # --head: training/head.py, training/head_sparse.py
 ABLATIONS = {"rgfd": "use_rgfd", "dgfd": "use_dgfd", "adapter": "use_adapter"}  # --ablate NAME -> field
 
 
@@ -266,6 +267,10 @@ def _plan(
 )
 @click.option("--denoiser-hidden", type=int, default=None, help="Student: light denoiser width [32].")
 @click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
+@click.option("--head", "head_kind", default=None, help="Recon head: dense | sparse [preset: sparse].")
+@click.option(
+    "--head-only", is_flag=True, help="Teacher: train only the head (encoder and S2D as --init left them)."
+)
 @click.option(
     "--init",
     type=click.Path(path_type=Path),
@@ -310,6 +315,8 @@ def main(
     denoiser_grad: str | None,
     denoiser_hidden: int | None,
     time_embed: int | None,
+    head_kind: str | None,
+    head_only: bool,
     init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -321,6 +328,12 @@ def main(
     if ema is not None and not 0 <= ema < 1:
         raise MsdnetError("--ema", f"is a decay in [0, 1), got {ema}")
     options = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers, "ema_decay": ema}
+    if head_only:
+        if kind != "teacher" or init is None:
+            raise MsdnetError(
+                "--head-only", "trains a teacher's head on the encoder of its --init checkpoint"
+            )
+        options["head_only"] = True
     if not augment:
         options["augment"] = AugmentConfig.off()
     overrides = {k: v for k, v in options.items() if v is not None}
@@ -369,6 +382,8 @@ def main(
             raise MsdnetError("--cond-dropout", f"is an R2LDM share in [0, 1), got {cond_dropout} for {kind}")
         cfg = replace(cfg, r2ldm_cond_dropout=cond_dropout)
     cfg = _student_options(cfg, kind, denoiser_grad, denoiser_hidden, time_embed)
+    if head_kind is not None:
+        cfg = replace(cfg, head_kind=_choice(head_kind, HEAD_KINDS, "head"))
     if loop_steps is not None:
         if kind != "student" or not 1 <= loop_steps <= cfg.diffusion.start_step:
             raise MsdnetError("--loop-steps", f"is a student's T_m in 1..m ({cfg.diffusion.start_step})")
@@ -381,8 +396,8 @@ def main(
         cfg = dataclasses.replace(cfg, **{ABLATIONS[_choice(name, tuple(ABLATIONS), "ablation")]: False})
     if kind == "teacher" and teacher is not None:
         raise MsdnetError(teacher, "--teacher is for student and r2ldm runs only")
-    if init is not None and (resume or teacher is not None):
-        raise MsdnetError(init, "--init starts a new run from a checkpoint: not with --resume or --teacher")
+    if init is not None and (resume or (teacher is not None and kind == "teacher")):
+        raise MsdnetError(init, "--init starts a new run from a checkpoint: not with --resume")
     if kind != "teacher" and teacher is None and not resume and init is None:
         raise MsdnetError(None, f"{kind} needs --teacher CKPT (a trained teacher checkpoint)")
     train_set, val_set = make_splits(
@@ -436,7 +451,7 @@ def _with_latent_norm(
 ) -> ModelConfig:
     """``cfg`` with ``latent_norm``: measured on ``frames`` training frames with a fresh teacher,
     or what the checkpoint being resumed / started from recorded (training/latent.py)."""
-    if teacher is None:
+    if teacher is None or init is not None:  # --init --teacher: the student keeps its own norm
         path = out / "last" if resume else init
         return replace(cfg, latent_norm=read_checkpoint(path)[1].latent_norm) if path else cfg
     from msdnet.training.latent import measure_latent_norm
@@ -452,16 +467,33 @@ def _with_latent_norm(
     return replace(cfg, latent_norm=norm)
 
 
-def _init_model(path: Path, kind: str, cfg: ModelConfig) -> torch.nn.Module:
+def _init_model(path: Path, kind: str, cfg: ModelConfig, teacher: torch.nn.Module | None) -> torch.nn.Module:
     """The model of checkpoint ``path`` (weights, and the teacher a student / R2LDM holds), after
-    checking it is a ``kind`` of the same config."""
+    checking it is a ``kind`` of the same config. Two exceptions: a new ``head_kind`` (the
+    tensors whose names and shapes match are taken, the rest start fresh), and a student / R2LDM
+    given ``teacher`` (``--teacher``: its own weights from ``path``, the frozen teacher from there)."""
     folder, icfg, istate = read_checkpoint(path)
     if istate.kind != kind:
         raise MsdnetError(folder, f"--init is a {istate.kind} checkpoint, this run trains a {kind}")
-    differs = config_diff(icfg, cfg)
+    differs = config_diff(icfg, cfg, ignore=("head_kind",))
     if differs:
         raise MsdnetError(folder, f"--init config differs from this run: {', '.join(differs)}"[:300])
-    return load_checkpoint(folder)[0]
+    old = load_checkpoint(folder)[0]
+    if teacher is None and icfg.head_kind == cfg.head_kind:
+        return old
+    model = build_model(kind, cfg, teacher=teacher)
+    dst = model.state_dict()
+    take = {
+        k: v
+        for k, v in old.state_dict().items()
+        if k in dst and dst[k].shape == v.shape and not (teacher is not None and k.startswith("teacher."))
+    }
+    model.load_state_dict(take, strict=False)
+    fresh = sorted({k.rsplit(".", 2)[0] for k in dst if k not in take and not k.startswith("teacher.")})
+    click.echo(
+        f"--init: {len(take)} of {len(dst)} tensors from {folder}; fresh: {', '.join(fresh) or 'none'}"
+    )
+    return model
 
 
 def _run(
@@ -476,9 +508,12 @@ def _run(
     """Build the model (same seed on every rank), train it, print one summary line."""
     torch.manual_seed(tcfg.seed)
     if spec.init is not None:
-        model = _init_model(Path(spec.init), spec.kind, cfg)
+        model = _init_model(Path(spec.init), spec.kind, cfg, teacher)
     else:
         model = build_model(spec.kind, cfg, teacher=teacher)
+    if tcfg.head_only:  # the students' distillation target F_l^D stays what it was
+        model.encoder.requires_grad_(False)
+        model.s2d.requires_grad_(False)
     metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
     if info.is_main:

@@ -67,6 +67,12 @@ class ModelConfig:
     denoiser_hidden: int = 32  # light denoiser bottleneck width (1x1 -> 3x3 -> 1x1)
     time_embed_dim: int = 64  # sinusoidal time embedding width
     head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
+    # recon head: "dense" (3x3x3 convs and volume GroupNorms down to 1/2; models before 2026-12-02)
+    # or "sparse" (only 1/8 mixes neighbours, per-voxel below: runs on occupied voxels; head_sparse.py)
+    head_kind: str = "dense"
+    # sparse head only: widths at 1/4 and 1/2 (1/8 and the full scale keep head_channels[0], [2]);
+    # wider than the dense head's, since below 1/4 a voxel sees only its parent (head_sparse.py)
+    head_sparse_widths: tuple[int, int] = (64, 32)
     r2ldm_channels: tuple[int, ...] = (128, 64)  # R2LDM U-Net widths per level, the first >= 2C
     r2ldm_cond_channels: int = 32  # R2LDM condition channels concatenated into every U-Net block
     # R2LDM sampling clips its x0 estimate to +-this (unit-variance latents; <= 0: no clip)
@@ -177,6 +183,9 @@ class TrainConfig:
     # (0 = off; the official R2LDM code evaluates an EMA at 0.995). When on, validation scores
     # the EMA weights and best/ holds them; last/ keeps the raw weights and the EMA for resume
     ema_decay: float = 0.0
+    # teacher only: train the reconstruction head alone, the LiDAR encoder and S2D kept as --init
+    # left them (a new head on a trained encoder: the students' distillation target is unchanged)
+    head_only: bool = False
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 
 
@@ -193,7 +202,7 @@ STUDENT_DIFFUSION = DiffusionConfig(start_step=100)
 
 
 def _preset(name: str, **kw: object) -> ModelConfig:
-    base = ModelConfig(preset=name, grid=GRID_PRESETS[name], diffusion=STUDENT_DIFFUSION)
+    base = ModelConfig(preset=name, grid=GRID_PRESETS[name], diffusion=STUDENT_DIFFUSION, head_kind="sparse")
     return replace(base, **kw)  # type: ignore[arg-type]
 
 
@@ -211,6 +220,7 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
         denoiser_hidden=8,
         time_embed_dim=16,
         head_channels=(8, 8, 8),
+        head_sparse_widths=(8, 8),
         r2ldm_channels=(32, 32),
         r2ldm_cond_channels=8,
         train_sample_steps=2,
@@ -231,6 +241,7 @@ MODEL_PRESETS: dict[str, ModelConfig] = {
         denoiser_hidden=64,
         time_embed_dim=128,
         head_channels=(32, 8, 8),  # 1/2 and full scale kept narrow: 40x320x320 on a CPU
+        head_sparse_widths=(32, 16),  # 1/4 is 64,000 voxels on the paper grid: kept at c4
         r2ldm_channels=(256, 256, 464),  # U-Net 38.1 M, R2LDM 39.1 M (the paper: 40.3 M)
         r2ldm_cond_channels=64,
     ),
@@ -246,6 +257,7 @@ MODEL_PRESETS["paper-width"] = replace(
     adapter_hidden=352,
     denoiser_hidden=192,
     head_channels=(64, 16, 8),
+    head_sparse_widths=(64, 16),
 )
 
 TRAIN_PRESETS: dict[str, TrainConfig] = {

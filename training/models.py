@@ -33,7 +33,7 @@ from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
 from msdnet.training.batch import Batch, EncoderInput
 from msdnet.training.config import ModelConfig
 from msdnet.training.encoder import SparseEncoder, level_shapes
-from msdnet.training.head import ReconHead
+from msdnet.training.head_sparse import build_head
 from msdnet.training.latent import LatentHead, norm_tensors
 from msdnet.training.losses import (
     eps_loss,
@@ -65,7 +65,7 @@ class TeacherModel(nn.Module):
         self.cfg = cfg
         self.encoder = SparseEncoder(cfg, "lidar")
         self.s2d = S2D(cfg)
-        self.head = ReconHead(cfg)
+        self.head = build_head(cfg)
 
     def features(self, lidar: EncoderInput) -> Tensor:
         """F_l^D (B, C, H8, W8), the dense teacher features (distillation target)."""

@@ -30,7 +30,7 @@ from msdnet.runtime.cosine_logsnr import sampler_plan
 from msdnet.runtime.rulebook import level_shapes
 from msdnet.training.batch import Batch, EncoderInput
 from msdnet.training.config import ModelConfig
-from msdnet.training.head import ReconHead
+from msdnet.training.head_sparse import build_head
 from msdnet.training.losses import occupancy_bce
 from msdnet.training.nn.blocks import group_norm
 from msdnet.training.nn.sparse import SparseConvBlock
@@ -112,7 +112,7 @@ class LPCRDecoder(nn.Module):
             nn.Conv2d(cfg.published.latent_channels, c, 3, stride=2, padding=1), group_norm(c), nn.GELU()
         )
         self.s2d = S2D(cfg)
-        self.head = ReconHead(cfg)
+        self.head = build_head(cfg)
 
     def features(self, z: Tensor) -> Tensor:
         """z -> dense BEV features (B, C, H8, W8) for the head."""

@@ -17,6 +17,9 @@ from msdnet.runtime.errors import one_line_errors
     "--preset", type=click.Choice(["tiny", "lite", "paper", "paper-width"]), help="Random models [lite]."
 )
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
+@click.option(
+    "--head", type=click.Choice(["dense", "sparse"]), help="Recon head of random models [preset: sparse]."
+)
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
 @click.option("--provider", default="cpu", show_default=True, help="cpu, auto, openvino, cuda or tensorrt.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
@@ -51,6 +54,7 @@ def latency_command(
     out: Path,
     preset: str | None,
     model: Path | None,
+    head: str | None,
     r2ldm: Path | None,
     provider: str,
     threads: int | None,
@@ -77,6 +81,7 @@ def latency_command(
     given = {
         "preset": preset,
         "model": model,
+        "head": head,
         "r2ldm": r2ldm,
         "provider": provider,
         "threads": threads,

@@ -22,7 +22,7 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +59,7 @@ class LatencyConfig:
     out: Path  # folder for results.json, results.md and the plots
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
+    head: str | None = None  # random models: "dense" or "sparse" recon head [the preset's: sparse]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
     provider: str = "cpu"  # provider short name (runtime.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
@@ -94,7 +95,10 @@ def _models(cfg: LatencyConfig, scratch: Path) -> ModelPair:
     if cfg.model is None:
         if cfg.r2ldm is not None:
             raise MsdnetError("--r2ldm", "only used with --model")
-        return random_pair(preset_config(cfg.preset or "lite"), scratch, cfg.seed)
+        base = preset_config(cfg.preset or "lite")
+        return random_pair(base if cfg.head is None else replace(base, head_kind=cfg.head), scratch, cfg.seed)
+    if cfg.head is not None:
+        raise MsdnetError("--head", "chooses the head of random models: not with --model")
     pair = given_pair(cfg.model, cfg.r2ldm, scratch, cfg.seed)
     if cfg.preset is not None and cfg.preset != pair.cfg.preset:
         raise MsdnetError("--preset", f"{cfg.preset} differs from the model's preset {pair.cfg.preset}")
@@ -227,6 +231,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     stages, r2_stages = runs.summaries(), r2.summaries()
     res: dict[str, Any] = {
         "preset": pair.cfg.preset,
+        "head_kind": pair.cfg.head_kind,  # recon head: "dense" (before 2026-12-02) or "sparse"
         "provider": cfg.provider,
         "threads": cfg.threads,
         "repeats": {"msdnet": cfg.repeats, "r2ldm": cfg.r2ldm_repeats, "sweeps": cfg.sweep_repeats},
