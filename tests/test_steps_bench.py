@@ -74,3 +74,30 @@ def test_relative_figures_and_the_fewest_steps():
     assert fewest_close_steps(rows) == 4
     rows[1]["vs_last_pct"]["fscore@0.5"] = -1.5
     assert fewest_close_steps(rows) == 50
+
+
+def test_select_split_scores_the_runs_held_out_slice(folder, vod_root, tmp_path):
+    """``--split select``: the frames of the training run's selection slice (where T_m is chosen),
+    read from ``--checkpoint``; without one, from the manifest's source, which must exist."""
+    from export_helpers import tiny_config
+
+    from msdnet.runtime.datasets import open_dataset
+    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
+    from msdnet.training.config import TrainConfig
+    from msdnet.training.models import build_model
+
+    ids = list(open_dataset("vod", vod_root, None).frame_ids)
+    ckpt = tmp_path / "run"
+    cfg = tiny_config()
+    state = CheckpointState(
+        kind="student", train=TrainConfig(), epochs=1, dataset={"val_frames": [*ids[1:], 2]}
+    )
+    save_checkpoint(ckpt, build_model("student", cfg), cfg, state)
+    args = ["steps", "--model", str(folder), "--dataset", "vod", "--data", str(vod_root), "--split", "select"]
+    args += ["--steps", "1", "--threads", "1"]
+    res = CliRunner().invoke(main, [*args, "--checkpoint", str(ckpt), "--out", str(tmp_path / "s")])
+    assert res.exit_code == 0, res.output
+    doc = json.loads((tmp_path / "s" / "results.json").read_text())
+    assert doc["evaluation"]["frame_ids"] == ids[1:] and "--checkpoint" in doc["command"]
+    res = CliRunner().invoke(main, [*args, "--out", str(tmp_path / "t")])
+    assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1  # source "tests": no run

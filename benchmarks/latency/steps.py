@@ -108,8 +108,11 @@ def run_steps(
     provider: str = "cpu",
     seed: int = 0,
     command: str = "",
+    checkpoint: Path | None = None,
 ) -> dict[str, Any]:
-    """Run the sweep (module docstring), write ``out/results.json`` and ``results.md``; -> the JSON."""
+    """Run the sweep (module docstring), write ``out/results.json`` and ``results.md``; -> the JSON.
+    ``split`` "select": the held-out selection slice of the training run of ``checkpoint`` (default:
+    the manifest's ``source``), where T_m may be chosen (never on validation)."""
     from msdnet.benchmarks.latency.quality import load_frames, quality_by_steps
     from msdnet.benchmarks.machine import machine_info
     from msdnet.benchmarks.quality.report import write_json, write_text
@@ -126,7 +129,18 @@ def run_steps(
     except MsdnetError as err:
         raise MsdnetError("--steps", str(err).split(": ", 1)[-1]) from None
     pipe.warmup()
-    frames = load_frames(data, dataset, max_frames, pipe, None if split == "all" else split)
+    frame_range = None
+    if split == "select":
+        from msdnet.training.checkpoint import read_checkpoint
+
+        source = checkpoint or pipe.artifact.manifest.get("source")
+        if not source:
+            raise MsdnetError("--split", "select needs --checkpoint (the manifest names no source run)")
+        first, last, _ = read_checkpoint(Path(source))[2].dataset["val_frames"]
+        frame_range = (first, last)
+    frames = load_frames(
+        data, dataset, max_frames, pipe, None if split in ("all", "select") else split, frame_range
+    )
     thr = pipe.artifact.threshold if threshold is None else threshold
     rows = quality_by_steps(pipe, frames, steps, thr, seed)
     for r in rows:
@@ -168,7 +182,18 @@ def run_steps(
 @click.option("--model", required=True, type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option("--dataset", required=True, type=click.Choice(DATASET_NAMES), help="Layout of --data.")
 @click.option("--data", required=True, type=click.Path(path_type=Path), help="Dataset root.")
-@click.option("--split", type=click.Choice(SPLITS), default="val", show_default=True, help="Frames scored.")
+@click.option(
+    "--split",
+    type=click.Choice([*SPLITS, "select"]),
+    default="val",
+    show_default=True,
+    help="Frames scored; select = the run's held-out selection slice (choose T_m there).",
+)
+@click.option(
+    "--checkpoint",
+    type=click.Path(path_type=Path),
+    help="--split select: the training run's checkpoint [the manifest's source].",
+)
 @click.option("--steps", "steps_text", default=DEFAULT_STEPS, show_default=True, help="T_m values.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for results.*")
 @click.option("--max-frames", type=click.IntRange(min=1), help="Score this many frames, spread evenly.")
@@ -187,7 +212,7 @@ def steps_command(steps_text: str, **opts: Any) -> None:
         f"msdnet-bench steps --model {opts['model']} --dataset {opts['dataset']} --data {opts['data']} "
         f"--split {opts['split']} --steps {','.join(map(str, steps))} --out {opts['out']}"
     )
-    for flag in ("max_frames", "threshold", "threads"):
+    for flag in ("max_frames", "threshold", "threads", "checkpoint"):
         if opts[flag] is not None:
             command += f" --{flag.replace('_', '-')} {opts[flag]}"
     command += "" if opts["provider"] == "cpu" else f" --provider {opts['provider']}"
