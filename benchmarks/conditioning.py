@@ -45,7 +45,7 @@ def conditioning_report(
     classifier-free guidance ``guidance`` (default: the checkpoint's config, 1 = off)."""
     import torch
 
-    from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
+    from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.errors import MsdnetError
     from msdnet.training.checkpoint import load_checkpoint
     from msdnet.training.nn.denoiser import ddim_loop

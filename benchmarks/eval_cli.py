@@ -17,9 +17,9 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from msdnet.runtime.datasets import DATASET_NAMES
+from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.io.datasets import DATASET_NAMES
 
 if TYPE_CHECKING:
     from msdnet.benchmarks.eval_methods import Method
@@ -104,7 +104,7 @@ def _methods(
 def quality_command(**opts: Any) -> None:
     """Quality of raw radar, R2LDM, MSDNet (torch / onnxruntime) and ablations (Tables I, II)."""
     from msdnet.benchmarks.quality.suite import run_quality
-    from msdnet.runtime.datasets import open_dataset
+    from msdnet.runtime.io.datasets import open_dataset
 
     methods, grid = _methods(opts, opts["ablations"], opts["keep_radar"])
     split = None if opts["split"] == "all" else opts["split"]
@@ -144,7 +144,7 @@ def _downstream(
     task: str, opts: dict[str, Any], place_options: dict[str, Any] | None = None
 ) -> dict[str, Any]:
     from msdnet.benchmarks.downstream.suite import read_sequences, run_downstream, select_sequences
-    from msdnet.runtime.datasets import VodDataset
+    from msdnet.runtime.io.datasets import VodDataset
 
     seqs = select_sequences(
         read_sequences(opts["data"]), int_tuple("--sequences", opts["sequences_text"], 0), opts["max_frames"]

@@ -5,7 +5,7 @@ the grid box) and returns ``(M, 3) float32 [x, y, z]`` in the radar frame:
 
 - :class:`RawRadar`: the radar points themselves (the "4D radar" row of the papers' tables);
 - :class:`PipelineMethod`: an exported artifact folder (MSDNet or R2LDM) run by the torch-free
-  :class:`~msdnet.runtime.pipeline.Pipeline` through onnxruntime;
+  :class:`~msdnet.runtime.engine.pipeline.Pipeline` through onnxruntime;
 - :class:`TorchMethod`: a training checkpoint run in torch eager (``model.predict``), with the
   same noise as the pipeline (``numpy.random.default_rng(seed)``, drawn in the BEV shape) and the
   same decoder, so torch and onnxruntime are compared on equal terms.
@@ -24,11 +24,11 @@ from typing import Any
 
 import numpy as np
 
-from msdnet.runtime.artifact import MANIFEST
-from msdnet.runtime.decode import decode_occupancy
+from msdnet.runtime.engine.decode import decode_occupancy
+from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.grid import GRID_PRESETS, GridConfig
-from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.model.artifact import MANIFEST
 
 # model kind -> name in the tables, and the role of its row
 KIND_LABELS = {"student": "MSDNet", "r2ldm": "R2LDM", "teacher": "Teacher (LiDAR in)"}
@@ -99,7 +99,7 @@ class PipelineMethod(Method):
     def __init__(
         self, folder: Path, settings: RunSettings, name: str | None = None, keep_radar: bool = False
     ) -> None:
-        from msdnet.runtime.pipeline import Pipeline
+        from msdnet.runtime.engine.pipeline import Pipeline
 
         self.pipe = Pipeline.from_dir(folder, provider=settings.provider, threads=settings.threads)
         self.kind = self.pipe.kind

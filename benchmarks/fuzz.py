@@ -27,9 +27,9 @@ from typing import Any
 import click
 import numpy as np
 
+from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.io import VOD_RADAR_COLUMNS, WRITE_FORMATS, read_cloud, write_cloud
-from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.io.files import VOD_RADAR_COLUMNS, WRITE_FORMATS, read_cloud, write_cloud
 
 READERS = ("ply", "pcd", "npy", "bin", "txt", "msg")
 CASE_LIMIT_S = 10  # one read longer than this counts as a hang
@@ -79,7 +79,7 @@ def valid_inputs(folder: Path, seed: int = 0, n: int = 24) -> dict[str, list[tup
 
 def _messages(pts: np.ndarray) -> list[bytes]:
     """CDR bytes of two valid PointCloud2 messages (height 1, and height 2 with row padding)."""
-    from msdnet.runtime.rosbag_io import POINTCLOUD2, make_pointcloud2
+    from msdnet.runtime.io.rosbag import POINTCLOUD2, make_pointcloud2
 
     store = _store()
     flat = make_pointcloud2(store, pts, VOD_RADAR_COLUMNS, (1_700_000_000, 5), "radar")
@@ -158,7 +158,7 @@ def _read_file(path: Path, data: bytes, out: Path) -> None:
 
 
 def _read_message(data: bytes) -> None:
-    from msdnet.runtime.rosbag_io import message_cloud
+    from msdnet.runtime.io.rosbag import message_cloud
 
     store = _store()
     message_cloud(store.deserialize_cdr, data, MODEL_COLUMNS, {}, "/radar/points message 0")
@@ -243,7 +243,7 @@ def fuzz_command(
         tallies = run_fuzz(work or Path(tmp), cases, seed, chosen)
     click.echo(report(tallies, cases, seed))
     if json_out is not None:
-        from msdnet.runtime.io import atomic_output
+        from msdnet.runtime.io.files import atomic_output
 
         body = {
             r: {"read": t.read, "refused": t.refused, "failures": t.failures, "seconds": t.seconds}

@@ -1,11 +1,11 @@
 """``msdnet-bench live``: msdnet-node end to end on loopback: latency, drops, max rate, a storm.
 
-Processes: a publisher (``runtime/live/publish``) sends the VoD example radar scans (cycled) as
+Processes: a publisher (``runtime/frontends/live/publish``) sends the VoD example radar scans (cycled) as
 ``/radar/points`` at a fixed rate; one ``msdnet-node`` (the model, ``--threads``) densifies them;
 this process collects ``/radar/points/dense`` and matches replies to sends by header stamp.
 End-to-end latency = reply received - scan sent (both CLOCK_MONOTONIC); drops = scans sent
 without a reply (the node counts those it replaced: latest-message-wins). Every participant uses
-the loopback-only CYCLONEDDS_URI (``runtime/live/dds.loopback_env``) and a domain id of its own.
+the loopback-only CYCLONEDDS_URI (``runtime/frontends/live/dds.loopback_env``) and a domain id of its own.
 
 Runs: 10 and 20 Hz for ``messages`` scans each; the highest rate held without a drop (a ladder
 down from 1 / the node's median service time, ``ladder_messages`` each); the storm (issue 24):
@@ -33,7 +33,7 @@ import numpy as np
 
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.infer_cli import resolve_model
+from msdnet.runtime.frontends.infer.cli import resolve_model
 
 WARMUP_REPLIES = 10  # the storm's memory baseline starts once this many replies are out
 MEMORY_FLAT_PCT = 5.0  # "memory flat": growth over the storm below this share (as msdnet-bench soak)
@@ -47,10 +47,10 @@ class NodeRun:
     def __init__(
         self, env: dict[str, str], domain: int, model: Path, threads: int | None, work: Path
     ) -> None:
-        from msdnet.runtime.live.publish import DenseCollector
+        from msdnet.runtime.frontends.live.publish import DenseCollector
 
         self.env, self.domain, self.stats_path = env, domain, work / f"node-{domain}.json"
-        cmd = [sys.executable, "-m", "msdnet.runtime.live.cli", "--domain-id", str(domain)]
+        cmd = [sys.executable, "-m", "msdnet.runtime.frontends.live.cli", "--domain-id", str(domain)]
         cmd += ["--model", str(model), "--stats-json", str(self.stats_path)]
         cmd += [] if threads is None else ["--threads", str(threads)]
         self.proc = subprocess.Popen(
@@ -71,7 +71,7 @@ class NodeRun:
         cmd = [
             sys.executable,
             "-m",
-            "msdnet.runtime.live.publish",
+            "msdnet.runtime.frontends.live.publish",
             *map(str, files),
             "--domain-id",
             str(self.domain),
@@ -259,7 +259,7 @@ def live_bench(
     rates: tuple[float, ...] = (10.0, 20.0),
 ) -> dict[str, Any]:
     """Every run of the module docstring; -> the results document."""
-    from msdnet.runtime.live.dds import loopback_env
+    from msdnet.runtime.frontends.live.dds import loopback_env
 
     base = 20 + os.getpid() % 150  # this run's domain ids: base, base + 1, ... (<= 232)
     counter = iter(range(base, 233))
@@ -321,7 +321,7 @@ def live_command(
 ) -> None:
     """msdnet-node end to end on loopback: latency, drops, max rate, storm."""
     from msdnet.benchmarks.stages import write_markdown_and_json
-    from msdnet.runtime.live.dds import cyclonedds
+    from msdnet.runtime.frontends.live.dds import cyclonedds
 
     cyclonedds()
     files = sorted((data / "radar" / "training" / "velodyne").glob("*.bin"))

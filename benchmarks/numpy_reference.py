@@ -3,7 +3,7 @@
 Written the obvious way (``np.unique``, ``np.bincount``, ``np.searchsorted`` per kernel tap) so
 they are easy to trust; the tests compare the numba kernels against them and
 ``msdnet-bench voxelize`` times the kernels against them. Same rules as the runtime modules
-(``msdnet.runtime.voxelize``, ``.rulebook``, ``.decode``), same float64 arithmetic.
+(``msdnet.runtime.engine.voxelize``, ``.rulebook``, ``.decode``), same float64 arithmetic.
 """
 
 from __future__ import annotations
@@ -12,12 +12,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.voxelize import Voxels
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.voxelize import Voxels
 
 
 def voxelize_numpy(points: np.ndarray, grid: GridConfig, max_voxels: int) -> Voxels:
-    """Reference of ``msdnet.runtime.voxelize.voxelize``. points: (N, C) float32 [x, y, z, ...]."""
+    """Reference of ``msdnet.runtime.engine.voxelize.voxelize``. points: (N, C) float32 [x, y, z, ...]."""
     pts = np.asarray(points, dtype=np.float32)
     c = pts.shape[1]
     lo = np.asarray(grid.point_range[:3], dtype=np.float64)

@@ -44,7 +44,7 @@ def split_frames(
     its training range (``run_dataset`` = the checkpoint's ``state.dataset``); ``max_frames`` of
     them spread evenly."""
     from msdnet.benchmarks.quality.suite import pick_frames
-    from msdnet.runtime.datasets import open_dataset
+    from msdnet.runtime.io.datasets import open_dataset
 
     ds = open_dataset(dataset, root, split if split in ("train", "val") else None)
     ids = list(ds.frame_ids)
@@ -57,7 +57,7 @@ def split_frames(
 def frame_batches(ds: Any, frame_ids: list[str], cfg: Any) -> Iterator[tuple[np.ndarray, np.ndarray, Any]]:
     """(radar (N, R) float32 in ``cfg.radar_columns``, LiDAR (M, 3) float32 [x, y, z], the
     collated batch of that one frame) for each frame with radar and LiDAR points in the grid."""
-    from msdnet.runtime.preprocess import preprocess_frame
+    from msdnet.runtime.io.datasets.preprocess import preprocess_frame
     from msdnet.training.batch import collate
 
     for fid in frame_ids:
@@ -70,7 +70,7 @@ def frame_batches(ds: Any, frame_ids: list[str], cfg: Any) -> Iterator[tuple[np.
 
 def write_markdown_and_json(doc: dict[str, Any], markdown: str, out: Path, stem: str) -> None:
     """``out/<stem>.json`` (the doc) and ``out/<stem>.md`` (the page), each written atomically."""
-    from msdnet.runtime.io import atomic_output
+    from msdnet.runtime.io.files import atomic_output
 
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(out / f"{stem}.json") as tmp:
@@ -94,8 +94,8 @@ def stage_report(
 
     from msdnet.benchmarks.metrics import score_frame
     from msdnet.benchmarks.quality.suite import crop_to_grid, xy_range
-    from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
-    from msdnet.runtime.decode import decode_occupancy
+    from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
+    from msdnet.runtime.engine.decode import decode_occupancy
     from msdnet.runtime.errors import MsdnetError
     from msdnet.training.checkpoint import load_checkpoint
     from msdnet.training.nn.adapter import NoiseAdapter

@@ -28,13 +28,13 @@ for _name, _value in TELEMETRY_OFF.items():
 del _name, _value
 
 _LAZY = {
-    "Pipeline": "msdnet.runtime.pipeline",
-    "Result": "msdnet.runtime.pipeline",
-    "Artifact": "msdnet.runtime.artifact",
-    "load_artifact": "msdnet.runtime.artifact",
-    "PointCloud": "msdnet.runtime.pointcloud",
-    "read_cloud": "msdnet.runtime.io",
-    "write_cloud": "msdnet.runtime.io",
+    "Pipeline": "msdnet.runtime.engine.pipeline",
+    "Result": "msdnet.runtime.engine.pipeline",
+    "Artifact": "msdnet.runtime.model.artifact",
+    "load_artifact": "msdnet.runtime.model.artifact",
+    "PointCloud": "msdnet.runtime.engine.pointcloud",
+    "read_cloud": "msdnet.runtime.io.files",
+    "write_cloud": "msdnet.runtime.io.files",
     "MsdnetError": "msdnet.runtime.errors",
 }
 

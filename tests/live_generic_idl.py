@@ -8,12 +8,12 @@ from dataclasses import dataclass
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl.types import sequence, uint8, uint32
 
-from msdnet.runtime.live.idl import Header, PointField
+from msdnet.runtime.frontends.live.idl import Header, PointField
 
 
 @dataclass
 class GenericPointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
-    """sensor_msgs/msg/PointCloud2 as the binding serializes it without runtime/live/idl's patch."""
+    """sensor_msgs/msg/PointCloud2 as the binding serializes it without runtime/frontends/live/idl's patch."""
 
     header: Header
     height: uint32

@@ -10,7 +10,7 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from msdnet.runtime import Pipeline
-from msdnet.runtime.infer_cli import BUNDLED_MODEL, main
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
 from msdnet.runtime.sim.command import simulate_dataset
 
 MODELS = Path(BUNDLED_MODEL).parent

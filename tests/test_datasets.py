@@ -8,13 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from msdnet.runtime.datasets import (
-    AstyxDataset,
-    VodDataset,
-    open_dataset,
-    split_contiguous,
-)
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io.datasets import AstyxDataset, VodDataset, open_dataset, split_contiguous
 
 # camera axes from a sensor's x forward / y left / z up: x_cam = -y, y_cam = -z, z_cam = x
 R_CAM = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])

@@ -1,11 +1,11 @@
-"""The DDIM schedule (runtime/ddim.py) against hand-computed values and a numpy DDIM reference."""
+"""The DDIM schedule (runtime/engine/ddim.py) against hand-computed values and a numpy DDIM reference."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from msdnet.runtime import ddim
+from msdnet.runtime.engine import ddim
 
 CFG = ddim.DiffusionConfig()
 

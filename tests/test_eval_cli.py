@@ -13,7 +13,7 @@ from export_helpers import make_artifact, make_exported_checkpoint, one_torch_th
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.metrics import score_frame
 from msdnet.benchmarks.quality.suite import xy_range
-from msdnet.runtime.grid import GRID_PRESETS
+from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.sim.command import simulate_dataset
 
 ASTYX_ARGS = ["--dataset", "astyx", "--split", "val", "--max-frames", "3", "--threads", "1"]

@@ -1,5 +1,5 @@
 """``msdnet-export``: graphs + manifest, ``--verify`` (torch vs onnxruntime), atomic publishing,
-and the external-data check of runtime/onnx_check.py against the real ``onnx`` schema."""
+and the external-data check of runtime/model/onnx_check.py against the real ``onnx`` schema."""
 
 from __future__ import annotations
 
@@ -16,10 +16,10 @@ from onnx import TensorProto, helper, numpy_helper
 
 from msdnet.export import verify
 from msdnet.export.cli import main
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.artifact import file_digest, load_artifact
-from msdnet.runtime.ddim import alphas_cumprod
-from msdnet.runtime.onnx_check import SUBSET, external_tensors
+from msdnet.runtime.engine.ddim import alphas_cumprod
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import file_digest, load_artifact
+from msdnet.runtime.model.onnx_check import SUBSET, external_tensors
 from msdnet.training.models import build_model
 
 
@@ -149,7 +149,7 @@ def test_export_refuses_a_teacher(tmp_path):
 
 
 def test_subset_schema_matches_onnx():
-    """The field numbers runtime/onnx_check.py declares are those of the real onnx.proto."""
+    """The field numbers runtime/model/onnx_check.py declares are those of the real onnx.proto."""
     for msg, fields in SUBSET.items():
         desc = getattr(onnx, msg).DESCRIPTOR
         for name, number, kind, repeated in fields:

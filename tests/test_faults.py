@@ -20,15 +20,17 @@ import pytest
 from click.testing import CliRunner
 from export_helpers import copy_artifact, make_artifact
 
-from msdnet.runtime import Pipeline, infer_cli, io, read_cloud
+from msdnet.runtime import Pipeline, read_cloud
+from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.infer_cli import OUT_COLUMNS, main
-from msdnet.runtime.io import clean_stale_temps, temp_name, write_cloud
-from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.frontends.infer import cli as infer_cli
+from msdnet.runtime.frontends.infer.cli import OUT_COLUMNS, main
+from msdnet.runtime.io import files as io
+from msdnet.runtime.io.files import clean_stale_temps, temp_name, write_cloud
 
 VOD_COLUMNS = ("x", "y", "z", "rcs", "v_r_compensated")
 FAST = ["--steps", "2", "--threads", "1"]
-BUNDLED = Path(infer_cli.__file__).resolve().parents[1] / "models" / "sim-lite"
+BUNDLED = infer_cli.BUNDLED_MODEL
 
 
 @pytest.fixture(scope="module")

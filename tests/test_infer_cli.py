@@ -14,8 +14,10 @@ import pytest
 from click.testing import CliRunner
 from export_helpers import copy_artifact, make_artifact
 
-from msdnet.runtime import Pipeline, infer_cli, onnx_spec, read_cloud
-from msdnet.runtime.infer_cli import OUT_COLUMNS, main
+from msdnet.runtime import Pipeline, read_cloud
+from msdnet.runtime.frontends.infer import cli as infer_cli
+from msdnet.runtime.frontends.infer.cli import OUT_COLUMNS, main
+from msdnet.runtime.model import onnx_spec
 
 STEPS = ["--steps", "3", "--threads", "1"]
 

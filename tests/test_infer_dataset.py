@@ -14,10 +14,10 @@ from export_helpers import make_artifact
 from msdnet.benchmarks.metrics import chamfer_distance
 from msdnet.benchmarks.quality.suite import crop_to_grid
 from msdnet.runtime import Pipeline, read_cloud
-from msdnet.runtime.datasets import open_dataset
-from msdnet.runtime.infer_cli import main
-from msdnet.runtime.infer_dataset import COMPARISON_FILE, OUT_COLUMNS
-from msdnet.runtime.preprocess import preprocess_frame
+from msdnet.runtime.frontends.infer.cli import main
+from msdnet.runtime.frontends.infer.dataset import COMPARISON_FILE, OUT_COLUMNS
+from msdnet.runtime.io.datasets import open_dataset
+from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 
 CD_TOL = 1e-6  # metres: same points, same metric code
 

@@ -9,10 +9,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from msdnet.runtime import io
+from msdnet.runtime.engine.pointcloud import PointCloud, canonical_column, concat_clouds
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io import LIDAR_COLUMNS, VOD_RADAR_COLUMNS, read_cloud, write_cloud
-from msdnet.runtime.pointcloud import PointCloud, canonical_column, concat_clouds
+from msdnet.runtime.io import files as io
+from msdnet.runtime.io.files import LIDAR_COLUMNS, VOD_RADAR_COLUMNS, read_cloud, write_cloud
 
 
 def _rows(n: int, c: int, seed: int = 0) -> np.ndarray:

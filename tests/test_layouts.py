@@ -11,9 +11,9 @@ import pytest
 from click.testing import CliRunner
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.infer_cli import BUNDLED_MODEL, main
-from msdnet.runtime.io import read_cloud
-from msdnet.runtime.layouts import LAYOUTS, layout_for_columns, resolve_bin_columns
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
+from msdnet.runtime.io.files import read_cloud
+from msdnet.runtime.io.layouts import LAYOUTS, layout_for_columns, resolve_bin_columns
 
 IDS = ("00549", "01047", "01201")
 

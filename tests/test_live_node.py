@@ -19,13 +19,13 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-from msdnet.runtime.infer_cli import BUNDLED_MODEL  # noqa: E402
-from msdnet.runtime.io import read_cloud  # noqa: E402
-from msdnet.runtime.live.dds import loopback_env  # noqa: E402
-from msdnet.runtime.live.idl import PointCloud2, dds_topic  # noqa: E402
-from msdnet.runtime.live.messages import cloud_message  # noqa: E402
-from msdnet.runtime.live.node import LatestSlot, NodeStats  # noqa: E402
-from msdnet.runtime.pipeline import Pipeline  # noqa: E402
+from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL  # noqa: E402
+from msdnet.runtime.frontends.live.dds import loopback_env  # noqa: E402
+from msdnet.runtime.frontends.live.idl import PointCloud2, dds_topic  # noqa: E402
+from msdnet.runtime.frontends.live.messages import cloud_message  # noqa: E402
+from msdnet.runtime.frontends.live.node import LatestSlot, NodeStats  # noqa: E402
+from msdnet.runtime.io.files import read_cloud  # noqa: E402
 
 DOMAIN = 30 + os.getpid() % 180  # unique per test process (parallel runs do not meet)
 START = 1_700_000_000 * 10**9
@@ -44,10 +44,10 @@ class Node:
     """An msdnet-node process on ``domain`` and a /dense collector in this process."""
 
     def __init__(self, env: dict[str, str], domain: int, model: Path, tmp: Path) -> None:
-        from msdnet.runtime.live.publish import DenseCollector
+        from msdnet.runtime.frontends.live.publish import DenseCollector
 
         self.env, self.domain, self.stats = env, domain, tmp / f"stats-{domain}.json"
-        cmd = [sys.executable, "-m", "msdnet.runtime.live.cli", "--domain-id", str(domain)]
+        cmd = [sys.executable, "-m", "msdnet.runtime.frontends.live.cli", "--domain-id", str(domain)]
         cmd += [
             "--model",
             str(model),
@@ -65,7 +65,7 @@ class Node:
         self.collector.wait_matched()
 
     def publish(self, files: list[Path], count: int, start: int = START, bad: tuple[int, ...] = ()) -> None:
-        cmd = [sys.executable, "-m", "msdnet.runtime.live.publish", *map(str, files)]
+        cmd = [sys.executable, "-m", "msdnet.runtime.frontends.live.publish", *map(str, files)]
         cmd += ["--domain-id", str(self.domain), "--hz", str(HZ), "--count", str(count)]
         cmd += ["--start-ns", str(start), *(a for i in bad for a in ("--bad", str(i)))]
         cmd += ["--lockstep", "30"]  # one reply per good scan however loaded the machine is

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from msdnet.runtime.grid import GridConfig
+from msdnet.runtime.engine.grid import GridConfig
 from msdnet.training.config import LossWeights
 from msdnet.training.losses import (
     eps_loss,

@@ -162,8 +162,8 @@ def test_teacher_frozen_head_shared_and_gradients_reach_rgfd_through_ddim_loop()
 
 @pytest.fixture(scope="module")
 def astyx_batch(astyx_root) -> Batch:
-    from msdnet.runtime.datasets.astyx import AstyxDataset
-    from msdnet.runtime.preprocess import preprocess_frame
+    from msdnet.runtime.io.datasets.astyx import AstyxDataset
+    from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 
     cfg = ASTYX_TINY
     frame = preprocess_frame(AstyxDataset(astyx_root).get("000000"), cfg.grid)

@@ -71,7 +71,7 @@ def test_pipeline_and_infer_without_torch(model, vod_root, tmp_path):
         except ImportError:
             pass
         from msdnet.runtime import Pipeline, read_cloud
-        from msdnet.runtime.infer_cli import main
+        from msdnet.runtime.frontends.infer.cli import main
 
         res = Pipeline.from_dir(model, threads=1)(read_cloud(scan), steps=2, seed=0)
         print(len(res.points))

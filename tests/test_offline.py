@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from msdnet.runtime.infer_cli import main
+from msdnet.runtime.frontends.infer.cli import main
 
 SESSION = """
 import time
 import numpy as np
 from msdnet.runtime import Pipeline
-from msdnet.runtime.infer_cli import BUNDLED_MODEL
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL
 pipe = Pipeline.from_dir(BUNDLED_MODEL, threads=1)
 pipe(np.random.default_rng(0).random((50, 5)).astype(np.float32) * 8, steps=1)
 time.sleep(2.0)  # onnxruntime writes its device id early; give it time
@@ -104,7 +104,7 @@ def test_local_ray_stays_on_loopback_without_usage_stats_or_metadata_probe(monke
     psutil = pytest.importorskip("psutil")
     from ray._common.usage import usage_lib
 
-    from msdnet.runtime.ray_batch import BOOTSTRAP_CONFIG, local_instance
+    from msdnet.runtime.frontends.infer.ray_batch import BOOTSTRAP_CONFIG, local_instance
 
     if ray.is_initialized():
         pytest.skip("this process is already connected to Ray")

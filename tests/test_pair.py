@@ -11,15 +11,15 @@ from scipy.spatial.transform import Rotation
 
 pytest.importorskip("rosbags")
 
-from msdnet.runtime.data_cli import main  # noqa: E402
-from msdnet.runtime.datasets import VodDataset  # noqa: E402
-from msdnet.runtime.datasets.vod import read_kitti_calib  # noqa: E402
-from msdnet.runtime.infer_cli import BUNDLED_MODEL  # noqa: E402
-from msdnet.runtime.infer_dataset import run_dataset  # noqa: E402
-from msdnet.runtime.io import read_cloud  # noqa: E402
-from msdnet.runtime.pairing.transforms import TimedEdge, parse_extrinsic  # noqa: E402
-from msdnet.runtime.pipeline import Pipeline  # noqa: E402
-from msdnet.runtime.rosbag_io import POINTCLOUD2, make_pointcloud2  # noqa: E402
+from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
+from msdnet.runtime.frontends.data.cli import main  # noqa: E402
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL  # noqa: E402
+from msdnet.runtime.frontends.infer.dataset import run_dataset  # noqa: E402
+from msdnet.runtime.io.datasets import VodDataset  # noqa: E402
+from msdnet.runtime.io.datasets.vod import read_kitti_calib  # noqa: E402
+from msdnet.runtime.io.files import read_cloud  # noqa: E402
+from msdnet.runtime.io.pairing.transforms import TimedEdge, parse_extrinsic  # noqa: E402
+from msdnet.runtime.io.rosbag import POINTCLOUD2, make_pointcloud2  # noqa: E402
 
 IDS = ("00549", "01047", "01201")
 T0 = 1_700_000_000 * 10**9

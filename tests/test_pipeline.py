@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from export_helpers import copy_artifact, make_artifact
 
-from msdnet.runtime import MsdnetError, Pipeline, PointCloud, onnx_spec, read_cloud
-from msdnet.runtime.artifact import load_artifact
-from msdnet.runtime.decode import decode_packed
+from msdnet.runtime import MsdnetError, Pipeline, PointCloud, read_cloud
+from msdnet.runtime.engine.decode import decode_packed
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import load_artifact
 
 STAGES = {"prepare", "voxelize", "encoder", "adapter", "denoise", "head", "decode", "total"}
 
@@ -57,8 +58,8 @@ def test_same_seed_bit_identical(pipe, scan):
 
 def _plain_loop(pipe: Pipeline, pts: np.ndarray, steps: int, seed: int) -> np.ndarray:
     """Reference without IOBinding: session.run with numpy feeds, fresh arrays every step."""
-    from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
-    from msdnet.runtime.voxelize import voxelize
+    from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
+    from msdnet.runtime.engine.voxelize import voxelize
 
     art = pipe.artifact
     vox = voxelize(pts, art.grid, art.inputs.max_voxels)
@@ -249,7 +250,7 @@ def test_external_data_graph_refused(student_dir, tmp_path):
     """A graph re-saved with its weights in a side file is refused even with a matching hash."""
     import onnx
 
-    from msdnet.runtime.artifact import file_digest
+    from msdnet.runtime.model.artifact import file_digest
 
     d = copy_artifact(student_dir, tmp_path / "ext")
     model = onnx.load(d / "denoiser_step.onnx")

@@ -12,11 +12,12 @@ from click.testing import CliRunner
 from export_helpers import make_artifact
 
 from msdnet.export.verify import E2E_DIFF_TOL, GRAPH_COS_TOL, GRAPH_REL_TOL, compare_points
-from msdnet.runtime import onnx_spec, provider_auto
-from msdnet.runtime.artifact import load_artifact
-from msdnet.runtime.io import write_cloud
-from msdnet.runtime.pipeline import Pipeline
-from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.engine import provider_auto
+from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.engine.pointcloud import PointCloud
+from msdnet.runtime.io.files import write_cloud
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import load_artifact
 
 pytest.importorskip("openvino")
 ON_OV = (onnx_spec.ENCODER.file, onnx_spec.DENOISER_STEP.file, onnx_spec.RECON_HEAD.file)
@@ -183,7 +184,7 @@ def test_without_openvino_every_graph_stays(folder, cache, monkeypatch):
 
 
 def test_infer_verbose_prints_the_picks(folder, cache, tmp_path):
-    from msdnet.runtime.infer_cli import main
+    from msdnet.runtime.frontends.infer.cli import main
 
     _force(cache, folder, "openvino")
     src = tmp_path / "in"

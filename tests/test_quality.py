@@ -37,10 +37,10 @@ from msdnet.benchmarks.quality.suite import (
     summarize,
     xy_range,
 )
-from msdnet.runtime.datasets import open_dataset
+from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.grid import GRID_PRESETS
-from msdnet.runtime.preprocess import crop_mask, preprocess_frame
+from msdnet.runtime.io.datasets import open_dataset
+from msdnet.runtime.io.datasets.preprocess import crop_mask, preprocess_frame
 
 TINY = GRID_PRESETS["tiny"]
 SETTINGS = RunSettings(threads=1)
@@ -235,7 +235,7 @@ def test_teacher_row_reads_the_lidar_and_keep_radar_row_adds_the_radar(astyx_roo
     from export_helpers import make_checkpoint
 
     from msdnet.benchmarks.eval_methods import RunSettings, build_methods
-    from msdnet.runtime.datasets import open_dataset
+    from msdnet.runtime.io.datasets import open_dataset
 
     art = make_artifact(tmp_path, "student", "astyx")
     teacher = make_checkpoint(tmp_path / "teacher", "teacher", "astyx")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from msdnet.runtime import ddim
+from msdnet.runtime.engine import ddim
 from msdnet.training.config import MODEL_PRESETS, R2LDM_LR
 from msdnet.training.losses import eps_loss
 from msdnet.training.models import R2LDMModel
@@ -164,7 +164,7 @@ def test_condition_alignment_is_an_r2ldm_training_term():
 def test_guided_step_mixes_conditional_and_unconditional_eps_and_exports():
     from test_dense_nets import ONNX_REL_ERR, onnx_session, rel_err, run_onnx
 
-    from msdnet.runtime import onnx_spec
+    from msdnet.runtime.model import onnx_spec
 
     cfg = dataclasses.replace(TINY, r2ldm_guidance=2.5)
     torch.manual_seed(0)

@@ -10,7 +10,7 @@ import pytest
 import torch
 from export_helpers import one_torch_thread, tiny_config
 
-from msdnet.runtime import cosine_logsnr as cs
+from msdnet.runtime.engine import cosine_logsnr as cs
 from msdnet.training.published_config import with_recipe
 
 # torch vs onnxruntime tolerances of the published sampler on the tiny preset
@@ -89,8 +89,8 @@ def test_loss_applies_min_snr_weights(monkeypatch):
 def test_torch_and_onnxruntime_sample_the_same_points(tmp_path):
     from msdnet.export.graphs import export_all
     from msdnet.export.manifest import build_manifest, write_manifest
-    from msdnet.runtime.pipeline import Pipeline
-    from msdnet.runtime.pointcloud import PointCloud
+    from msdnet.runtime.engine.pipeline import Pipeline
+    from msdnet.runtime.engine.pointcloud import PointCloud
     from msdnet.training.batch import make_encoder_input
     from msdnet.training.models import build_model
 
@@ -116,7 +116,7 @@ def test_torch_and_onnxruntime_sample_the_same_points(tmp_path):
         with torch.no_grad():
             occ, off = model.predict(enc, noise=torch.from_numpy(noise), rng=gen)
     from msdnet.export.verify import compare_points
-    from msdnet.runtime.decode import decode_occupancy
+    from msdnet.runtime.engine.decode import decode_occupancy
 
     ref, _ = decode_occupancy(occ[0].numpy(), off[0].numpy(), cfg.grid, cfg.threshold)
     assert len(ref) > 100

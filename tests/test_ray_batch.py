@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
-from msdnet.runtime.infer_cli import main
+from msdnet.runtime.frontends.infer.cli import main
 from msdnet.runtime.sim.sequence import SequenceSim
 
 ray = pytest.importorskip("ray", reason="the [ray] extra (CI installs it)")
@@ -27,7 +27,7 @@ ACTOR = "MapWorker(MapBatches(_InferActor))"
 def local_ray():
     """A 2-CPU Ray instance owned by this test process (started once for the module), on 127.0.0.1
     with usage stats off and no cloud-metadata probe, as ``--ray`` starts one (ray_batch)."""
-    from msdnet.runtime.ray_batch import local_instance
+    from msdnet.runtime.frontends.infer.ray_batch import local_instance
 
     start = time.perf_counter()
     with local_instance(num_cpus=2):

@@ -11,7 +11,7 @@ import pytest
 import torch
 from export_helpers import one_torch_thread, tiny_config
 
-from msdnet.runtime.grid import GRID_PRESETS
+from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.training.augment import augment_pair
 from msdnet.training.batch import collate
 from msdnet.training.config import AugmentConfig
@@ -238,8 +238,8 @@ def test_the_no_dgfd_ablation_exports_with_an_identity_loop(astyx_root, tmp_path
     the identity; onnxruntime gives the torch model's points."""
     from msdnet.benchmarks.eval_methods import PipelineMethod, RunSettings, TorchMethod
     from msdnet.export.cli import export_model
-    from msdnet.runtime.datasets import open_dataset
-    from msdnet.runtime.preprocess import preprocess_frame
+    from msdnet.runtime.io.datasets import open_dataset
+    from msdnet.runtime.io.datasets.preprocess import preprocess_frame
     from msdnet.training.checkpoint import CheckpointState, save_checkpoint
     from msdnet.training.config import TrainConfig
 

@@ -19,8 +19,8 @@ from click.testing import CliRunner
 
 from msdnet.runtime import Pipeline, read_cloud
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.infer_cli import BUNDLED_MODEL, main
-from msdnet.runtime.io import MAX_POINTS, VOD_RADAR_COLUMNS, temp_name
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
+from msdnet.runtime.io.files import MAX_POINTS, VOD_RADAR_COLUMNS, temp_name
 
 RUN = ["--steps", "1", "--threads", "1"]
 TOPIC = "/radar/points"
@@ -126,7 +126,7 @@ from rosbags.rosbag2 import StoragePlugin  # noqa: E402
 from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from msdnet.runtime.rosbag_io import POINTCLOUD2, make_pointcloud2, pointcloud2_to_array  # noqa: E402
+from msdnet.runtime.io.rosbag import POINTCLOUD2, make_pointcloud2, pointcloud2_to_array  # noqa: E402
 
 STORE = get_typestore(Stores.ROS2_HUMBLE)
 
@@ -245,7 +245,7 @@ def test_killed_bag_writers_temp_folder_removed_by_the_next_run(tmp_path):
 
 def test_field_names_with_odd_characters_stay_on_one_line():
     """Found by msdnet-bench fuzz (msg case 1551, seed 1): a field name holding a newline."""
-    from msdnet.runtime.rosbag_io import resolve_fields
+    from msdnet.runtime.io.rosbag import resolve_fields
 
     msg = _msg(_points(5), ("x\n", "y", "z", "rcs", "v_r", "v_r_compensated", "time"))
     with pytest.raises(MsdnetError) as err:

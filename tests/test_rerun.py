@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from msdnet.runtime.artifact import load_artifact
-from msdnet.runtime.datasets import open_dataset
-from msdnet.runtime.infer_cli import BUNDLED_MODEL, main
-from msdnet.runtime.io import DENSE_COLUMNS, read_cloud
-from msdnet.runtime.preprocess import preprocess_frame
+from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
+from msdnet.runtime.io.datasets import open_dataset
+from msdnet.runtime.io.datasets.preprocess import preprocess_frame
+from msdnet.runtime.io.files import DENSE_COLUMNS, read_cloud
+from msdnet.runtime.model.artifact import load_artifact
 
 pytest.importorskip("rerun", reason="the [rerun] extra (CI installs it)")
 from rerun.chunk import RrdReader  # noqa: E402
 
-from msdnet.runtime.rerun_log import RADAR_RGB, confidence_colors  # noqa: E402
+from msdnet.runtime.io.rerun_log import RADAR_RGB, confidence_colors  # noqa: E402
 
 RUN = ["--steps", "3", "--threads", "1"]
 

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from msdnet.runtime.infer_cli import main
-from msdnet.runtime.io import DENSE_COLUMNS, VOD_RADAR_COLUMNS, read_cloud
+from msdnet.runtime.frontends.infer.cli import main
+from msdnet.runtime.io.files import DENSE_COLUMNS, VOD_RADAR_COLUMNS, read_cloud
 from msdnet.runtime.sim.sequence import SequenceSim
 
 rosbags = pytest.importorskip("rosbags", reason="the [ros] extra (CI installs it)")
@@ -21,7 +21,7 @@ from rosbags.rosbag2 import StoragePlugin  # noqa: E402
 from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
 from rosbags.typesys import Stores, get_typestore  # noqa: E402
 
-from msdnet.runtime.rosbag_io import POINTCLOUD2, files_to_bag, make_pointcloud2  # noqa: E402
+from msdnet.runtime.io.rosbag import POINTCLOUD2, files_to_bag, make_pointcloud2  # noqa: E402
 
 TOPIC = "/radar/points"
 RUN = ["--steps", "3", "--threads", "1", "--seed", "5"]

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from msdnet.benchmarks.numpy_reference import down_rulebook_numpy, subm_rulebook_numpy
-from msdnet.runtime.rulebook import (
+from msdnet.runtime.engine.rulebook import (
     batch_coords,
     build_encoder_rulebooks,
     down_rulebook,

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from msdnet.runtime.datasets.vod import VodDataset
+from msdnet.runtime.io.datasets.stats import ASTYX_TARGETS, REALISM_TARGETS, compute_stats
+from msdnet.runtime.io.datasets.vod import VodDataset
 from msdnet.runtime.sim import materials as mt
 from msdnet.runtime.sim import raycast as rc
 from msdnet.runtime.sim import rig
@@ -18,7 +19,6 @@ from msdnet.runtime.sim.lidar import LidarConfig, beam_directions, beam_elevatio
 from msdnet.runtime.sim.radar import CLUTTER, FACADE_GHOST, RadarConfig, RadarSim
 from msdnet.runtime.sim.sequence import SequenceSim
 from msdnet.runtime.sim.trajectory import loop_closures
-from msdnet.runtime.stats import ASTYX_TARGETS, REALISM_TARGETS, compute_stats
 
 N_SEQ, N_FRAMES, SEED = 3, 3, 0
 # sha256 over (relative path, bytes) of the VoD-rig fixture folder, from the simulator before rigs
@@ -254,7 +254,7 @@ def test_cli_refuses_non_empty_folder_and_bad_arguments(tmp_path: Path):
 
 def test_training_splits_follow_the_published_split_files(sim_dir: Path):
     """Training's validation frames are exactly what ``msdnet-bench quality --split val`` scores."""
-    from msdnet.runtime.datasets import VodDataset
+    from msdnet.runtime.io.datasets import VodDataset
     from msdnet.training.config import MODEL_PRESETS
     from msdnet.training.data import config_for_dataset, make_splits
 
@@ -311,7 +311,7 @@ def test_vod_rig_is_the_default_and_unchanged(sim_dir: Path):
 
 
 def test_astyx_rig_sensors_and_columns(astyx_dir: Path):
-    from msdnet.runtime.datasets import SimAstyxDataset, open_dataset
+    from msdnet.runtime.io.datasets import SimAstyxDataset, open_dataset
     from msdnet.runtime.sim.rigs import MAG_FLOOR, VR_FOLD
 
     ds = open_dataset("sim-astyx", astyx_dir)
@@ -345,7 +345,7 @@ ASTYX_KNOWN_MISMATCH = ("range_median", "range_p90", "radar_in_region", "lidar_r
 
 
 def test_astyx_rig_statistics_in_astyx_bands(astyx_dir: Path):
-    from msdnet.runtime.datasets import SimAstyxDataset
+    from msdnet.runtime.io.datasets import SimAstyxDataset
 
     stats = compute_stats(SimAstyxDataset(astyx_dir))
     widened = {}  # Astyx bands widened by 30 % of their width on each side (4 frames only)

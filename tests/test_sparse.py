@@ -7,8 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from msdnet.runtime.onnx_spec import ENCODER, OPSET
-from msdnet.runtime.rulebook import build_encoder_rulebooks
+from msdnet.runtime.engine.rulebook import build_encoder_rulebooks
+from msdnet.runtime.model.onnx_spec import ENCODER, OPSET
 from msdnet.training.batch import make_encoder_input
 from msdnet.training.config import MODEL_PRESETS
 from msdnet.training.encoder import SparseEncoder, level_shapes

@@ -9,11 +9,11 @@ import pytest
 from click.testing import CliRunner
 from matplotlib.image import imread
 
-from msdnet.runtime.datasets import VodDataset
-from msdnet.runtime.grid import GRID_PRESETS
-from msdnet.runtime.stats import REALISM_TARGETS, compute_stats, format_stats
-from msdnet.runtime.viz import render_bev
-from msdnet.runtime.viz_command import show, stats
+from msdnet.runtime.engine.grid import GRID_PRESETS
+from msdnet.runtime.frontends.data.show_stats import show, stats
+from msdnet.runtime.io.datasets import VodDataset
+from msdnet.runtime.io.datasets.stats import REALISM_TARGETS, compute_stats, format_stats
+from msdnet.runtime.io.pictures import render_bev
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RADAR_RGB = (0xD6 / 255, 0x27 / 255, 0x28 / 255)  # the radar colour of ``show``
@@ -57,7 +57,7 @@ def test_vod_stats_in_band(vod_root):
 
 
 def test_stats_missing_columns_are_none(astyx_root):
-    from msdnet.runtime.datasets import AstyxDataset
+    from msdnet.runtime.io.datasets import AstyxDataset
 
     result = compute_stats([AstyxDataset(astyx_root)[0]])
     assert result.rcs_median is None and result.moving_share is None

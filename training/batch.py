@@ -6,7 +6,7 @@ Contract with the training loop and the exporter:
   raw per-voxel column means (the encoder normalises them itself with the config's
   ``*_feature_norm``, inside its ONNX graph, so the runtime feeds the voxelizer's output as is),
   the int64 rulebooks and the last level's coordinates. ``tensors()`` lists them in the order of
-  ``msdnet.runtime.onnx_spec.ENCODER.inputs``.
+  ``msdnet.runtime.model.onnx_spec.ENCODER.inputs``.
 - :func:`collate` turns ``[(radar (N, Cr), lidar (M, Cl)), ...]`` (preprocessed, radar frame,
   columns as ``cfg.radar_columns`` / ``cfg.lidar_columns``) into a :class:`Batch` with the
   encoder inputs of both modalities and the LiDAR occupancy/offset targets at 1/4, 1/2 and 1.
@@ -21,10 +21,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.onnx_spec import NUM_DOWN
-from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
-from msdnet.runtime.voxelize import voxelize
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
+from msdnet.runtime.engine.voxelize import voxelize
+from msdnet.runtime.model.onnx_spec import NUM_DOWN
 from msdnet.training.config import ModelConfig
 from msdnet.training.targets import make_targets
 
@@ -89,7 +89,7 @@ class Batch:
 def make_encoder_input(clouds: Sequence[np.ndarray], grid: GridConfig, max_voxels: int) -> EncoderInput:
     """clouds: list of (N_i, C) float32 point arrays [x, y, z, ...] (same C) -> EncoderInput.
 
-    Voxelizes each cloud with ``msdnet.runtime.voxelize`` (per-voxel means, cap ``max_voxels``),
+    Voxelizes each cloud with ``msdnet.runtime.engine.voxelize`` (per-voxel means, cap ``max_voxels``),
     joins them with ``batch_coords`` and builds every rulebook with ``build_encoder_rulebooks``.
     """
     if not clouds:

@@ -7,7 +7,7 @@ a run without a holdout calibrates on its training frames (over-fitted ones: avo
 A model trained with a weighted occupancy loss (``--occ-pos-weight w``) over-states every
 probability (odds times ``w``), so its right decoding threshold is not 0.5. For each candidate
 threshold this decodes the model's full-scale prediction of a few evenly spaced training frames
-exactly as the runtime does (``runtime.decode.decode_occupancy``), crops it like the evaluation
+exactly as the runtime does (``runtime.engine.decode.decode_occupancy``), crops it like the evaluation
 does (``benchmarks.quality.suite.crop_to_grid``) and scores it against the frame's LiDAR reference with
 the paper's five headline metrics (``benchmarks.metrics.score_frame``: Chamfer distance, modified
 Hausdorff distance, F-score at 0.5 m, BEV JSD and MMD). Each metric ranks the thresholds by its
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from msdnet.runtime.decode import decode_occupancy
+from msdnet.runtime.engine.decode import decode_occupancy
 from msdnet.runtime.errors import MsdnetError
 from msdnet.training.batch import collate
 from msdnet.training.config import ModelConfig

@@ -1,7 +1,7 @@
 """Torch datasets over the runtime's readers: frames -> preprocess -> (radar, LiDAR) arrays.
 
 One sample is ``(radar (N, len(cfg.radar_columns)), lidar (M, len(cfg.lidar_columns)))``,
-float32, radar frame, after ``msdnet.runtime.preprocess.preprocess_frame`` (LiDAR cropped to
+float32, radar frame, after ``msdnet.runtime.io.datasets.preprocess.preprocess_frame`` (LiDAR cropped to
 the grid and the radar's field of view, ground removed), which is what
 ``msdnet.training.batch.collate`` takes. Train and validation are contiguous frame ranges
 (the real datasets are drives in sequence; a random split would leak neighbouring frames).
@@ -47,7 +47,7 @@ def split_indices(frame_ids: list[str], val_fraction: float) -> tuple[list[int],
 
     Both parts must be non-empty (MsdnetError otherwise).
     """
-    from msdnet.runtime.datasets import split_contiguous
+    from msdnet.runtime.io.datasets import split_contiguous
 
     if not 0.0 < val_fraction < 1.0:
         raise MsdnetError(None, f"validation fraction must be in (0, 1), got {val_fraction}")
@@ -119,7 +119,7 @@ class PairDataset(Dataset):
     def _frame(self, i: int) -> tuple[np.ndarray, np.ndarray]:
         if i in self._cached:
             return self._cached[i]
-        from msdnet.runtime.preprocess import preprocess_frame
+        from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 
         frame = preprocess_frame(self.frames[self.indices[i]], self.cfg.grid)
         pair = (
@@ -158,7 +158,7 @@ def make_splits(
     ``holdout == 0``: (training range, validation split), the layout of runs before 2026-12.
     ``augment`` applies to the fitted frames only.
     """
-    from msdnet.runtime.datasets import VodDataset, open_dataset
+    from msdnet.runtime.io.datasets import VodDataset, open_dataset
 
     if dataset not in DATASETS:
         raise MsdnetError(None, f"unknown dataset {dataset!r} (choose from {', '.join(DATASETS)})")

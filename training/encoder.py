@@ -11,7 +11,7 @@ Teacher (LiDAR) and student (radar) each own one, with separate weights (MSDNet 
 4. Height collapse: the level-3 voxels are scattered into a dense ``(B, C, D8, H8, W8)`` volume,
    re-read as ``(B, C * D8, H8, W8)`` (channel-major) and mixed by a 1x1 conv to ``bev_channels``.
 
-The forward takes plain tensors in the order of ``msdnet.runtime.onnx_spec.ENCODER.inputs`` so
+The forward takes plain tensors in the order of ``msdnet.runtime.model.onnx_spec.ENCODER.inputs`` so
 it traces to ONNX (Gather + Reshape + MatMul per layer, ScatterND for the BEV scatter) with
 dynamic voxel counts.
 """
@@ -21,13 +21,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.onnx_spec import NUM_DOWN
-from msdnet.runtime.rulebook import level_shapes
+from msdnet.runtime.engine.rulebook import level_shapes
+from msdnet.runtime.model.onnx_spec import NUM_DOWN
 from msdnet.training.batch import EncoderInput
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.sparse import SparseConvBlock
 
-__all__ = ["SparseEncoder", "level_shapes"]  # level_shapes lives in runtime.rulebook (torch-free)
+__all__ = ["SparseEncoder", "level_shapes"]  # level_shapes lives in runtime.engine.rulebook (torch-free)
 
 
 class SparseEncoder(nn.Module):

@@ -11,7 +11,7 @@ import torch
 from msdnet.benchmarks.latency.models import int8_artifact
 from msdnet.benchmarks.latency.timing import BareStep, plain_run, summary, time_stages, torch_eager
 from msdnet.benchmarks.metrics import chamfer_distance
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.engine.pipeline import Pipeline
 
 
 def torch_comparison(

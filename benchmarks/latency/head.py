@@ -16,7 +16,7 @@ import numpy as np
 
 from msdnet.benchmarks.latency.timing import Scan, summary
 from msdnet.export.gate import keep_all_gate
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.engine.pipeline import Pipeline
 
 RANDOM_VOXEL_SHARE = 0.05  # random weights: share of the half-scale voxels the gate keeps
 

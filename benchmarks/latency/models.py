@@ -27,9 +27,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.artifact import MANIFEST, file_digest, load_artifact
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import MANIFEST, file_digest, load_artifact
 from msdnet.training.config import ModelConfig
 
 KINDS = ("msdnet", "r2ldm")  # result keys; artifact kinds "student" and "r2ldm"

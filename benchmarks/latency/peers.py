@@ -8,7 +8,7 @@ Engines:
 - ``onnxruntime``: ours, the pipeline's own sessions (its threads and provider: with
   ``--provider openvino`` or ``auto`` some of them are OpenVINO's), plain ``session.run``;
 - ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
-  (``runtime.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
+  (``runtime.engine.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
   reported with the reason;
 - ``torch_eager``: the torch modules the graphs were exported from (``export.graphs.graph_modules``:
@@ -33,9 +33,9 @@ import numpy as np
 import torch
 
 from msdnet.benchmarks.latency.timing import Scan
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.pipeline import Pipeline
-from msdnet.runtime.provider_auto import failure_reason
+from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.engine.provider_auto import failure_reason
+from msdnet.runtime.model import onnx_spec
 from msdnet.training.batch import make_encoder_input
 
 ENGINES = ("onnxruntime", "openvino", "torch_eager", "torch_compile")
@@ -88,7 +88,7 @@ def _onnxruntime(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds) -> Cal
 
 
 def _openvino(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds, threads: int) -> Callable[[], None]:
-    from msdnet.runtime.openvino_session import OpenVinoSession
+    from msdnet.runtime.engine.openvino_session import OpenVinoSession
 
     sess = OpenVinoSession(pipe.artifact.graphs[spec.file], threads)  # f32, as --provider openvino
 

@@ -19,8 +19,8 @@ from tqdm import tqdm
 from msdnet.benchmarks.metrics import FrameScores, score_frame
 from msdnet.benchmarks.quality.suite import crop_to_grid, pick_frames, summarize, xy_range
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.pipeline import Pipeline
-from msdnet.runtime.pointcloud import PointCloud
+from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.engine.pointcloud import PointCloud
 
 
 def load_frames(
@@ -35,8 +35,8 @@ def load_frames(
     frames from its first to its last id, both included), spread evenly and in order, preprocessed
     on the model's grid: (frame id, radar cloud with the model's columns, LiDAR (M, 3) float32
     [x, y, z])."""
-    from msdnet.runtime.datasets import open_dataset
-    from msdnet.runtime.preprocess import preprocess_frame
+    from msdnet.runtime.io.datasets import open_dataset
+    from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 
     ds = open_dataset(dataset, data, split)
     ids = list(ds.frame_ids)

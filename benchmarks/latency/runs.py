@@ -12,7 +12,7 @@ from tqdm import tqdm
 from msdnet.benchmarks.flops import graph_flops
 from msdnet.benchmarks.latency.timing import BareStep, StageRuns, time_stages
 from msdnet.benchmarks.machine import measure_sgemm_gflops
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.engine.pipeline import Pipeline
 
 
 def msdnet_timings(

@@ -19,8 +19,8 @@ from typing import Any, cast
 import click
 
 from msdnet.benchmarks.eval_cli import SPLITS, int_tuple
-from msdnet.runtime.datasets import DATASET_NAMES
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.datasets import DATASET_NAMES
 
 DEFAULT_STEPS = "1,2,4,10,25,50"
 CLOSE_PCT = 1.0  # "within 1 % of the largest T_m" (issue 23's few-step goal)
@@ -116,7 +116,7 @@ def run_steps(
     from msdnet.benchmarks.latency.quality import load_frames, quality_by_steps
     from msdnet.benchmarks.machine import machine_info
     from msdnet.benchmarks.quality.report import write_json, write_text
-    from msdnet.runtime.pipeline import Pipeline
+    from msdnet.runtime.engine.pipeline import Pipeline
 
     load_start = os.getloadavg()
     pipe = Pipeline.from_dir(model, provider=provider, threads=threads)
@@ -204,7 +204,7 @@ def run_steps(
 @one_line_errors
 def steps_command(steps_text: str, **opts: Any) -> None:
     """MSDNet Table III: CD, MHD, F-scores, JSD and ms per frame against T_m on a dataset split."""
-    from msdnet.runtime.session import resolve_providers
+    from msdnet.runtime.engine.session import resolve_providers
 
     resolve_providers(opts["provider"])
     steps = cast(tuple[int, ...], int_tuple("--steps", steps_text, 1))

@@ -22,15 +22,15 @@ import onnxruntime as ort
 import torch
 
 from msdnet.benchmarks.numpy_reference import down_rulebook_numpy, subm_rulebook_numpy, voxelize_numpy
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.decode import unpack_children
-from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.kernels import warmup as numba_warmup
-from msdnet.runtime.pipeline import Pipeline
-from msdnet.runtime.pointcloud import PointCloud
-from msdnet.runtime.rulebook import batch_coords, build_encoder_rulebooks
-from msdnet.runtime.session import device_of
-from msdnet.runtime.voxelize import voxelize
+from msdnet.runtime.engine.decode import unpack_children
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.kernels import warmup as numba_warmup
+from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.engine.pointcloud import PointCloud
+from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
+from msdnet.runtime.engine.session import device_of
+from msdnet.runtime.engine.voxelize import voxelize
+from msdnet.runtime.model import onnx_spec
 from msdnet.training.batch import make_encoder_input
 
 Scan = np.ndarray | PointCloud  # (N, C) float32 in the model's columns, or a named cloud
@@ -272,7 +272,7 @@ def infer_command() -> list[str]:
     script = Path(sys.executable).parent / "msdnet-infer"
     if script.is_file():
         return [str(script)]
-    return [sys.executable, "-c", "from msdnet.runtime.infer_cli import main; main()"]
+    return [sys.executable, "-c", "from msdnet.runtime.frontends.infer.cli import main; main()"]
 
 
 # Runs in a fresh, small Python: starts msdnet-infer, waits, prints its peak RSS. Linux keeps a

@@ -1,6 +1,6 @@
 """Outputs of the evaluation commands: results.json, results.md and BEV picture strips.
 
-Everything is written atomically (``runtime.io.atomic_output``: a temporary file in the same
+Everything is written atomically (``runtime.io.files.atomic_output``: a temporary file in the same
 folder, then ``os.replace``). Non-finite numbers become JSON ``null`` so results.json stays
 strict JSON; numpy scalars become plain numbers.
 """
@@ -18,9 +18,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from msdnet.benchmarks.quality.columns import FSCORE_KEYS
-from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.io import atomic_output
-from msdnet.runtime.viz import draw_grid
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.io.files import atomic_output
+from msdnet.runtime.io.pictures import draw_grid
 
 # MSDNet paper, Table I (VoD) as printed: CD (unit not stated), MHD (printed x1e-2, here in m),
 # F-score (threshold not stated), JSD, MMD (printed x1e-4, here as is).
@@ -186,7 +186,7 @@ def picture_strip(
 ) -> Path:
     """One PNG with a BEV panel per (label, points (N, >=2) [x, y, ...] radar frame, colour).
 
-    As ``runtime.viz.render_bev``: x forward drawn upward, y left drawn to the left, the grid box
+    As ``runtime.io.pictures.render_bev``: x forward drawn upward, y left drawn to the left, the grid box
     and the field of view outlined. Written atomically; returns the path.
     """
     fig = Figure(figsize=(4 * len(panels), 4.4), dpi=dpi)

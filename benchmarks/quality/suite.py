@@ -1,7 +1,7 @@
 """Point-cloud quality of every method on the same frames (MSDNet Tables I and II).
 
 For each frame of a dataset split: the frame is preprocessed on the models' grid
-(``runtime.preprocess.preprocess_frame``: radar cropped to the grid box; the LiDAR reference
+(``runtime.io.datasets.preprocess.preprocess_frame``: radar cropped to the grid box; the LiDAR reference
 cropped to the grid box and the radar's field of view, ground removed, as the papers evaluate),
 every method turns the radar scan into a cloud, that cloud is cropped exactly like the reference
 (:func:`crop_to_grid`) and scored against it with ``benchmarks.metrics.score_frame``. Tables hold
@@ -27,12 +27,12 @@ from msdnet.benchmarks.eval_methods import Method, primary
 from msdnet.benchmarks.metrics import FSCORE_THRESHOLDS, FrameScores, score_frame
 from msdnet.benchmarks.quality.columns import FSCORE_KEYS, PANEL_COLOURS
 from msdnet.benchmarks.quality.official import OfficialFrames, official_markdown, official_section
-from msdnet.runtime.datasets import FrameDataset
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.io import atomic_output, write_cloud
-from msdnet.runtime.pointcloud import PointCloud
-from msdnet.runtime.preprocess import crop_mask, preprocess_frame
+from msdnet.runtime.io.datasets import FrameDataset
+from msdnet.runtime.io.datasets.preprocess import crop_mask, preprocess_frame
+from msdnet.runtime.io.files import atomic_output, write_cloud
 
 # summary metrics, in table order: name -> whether lower is better
 METRICS: dict[str, bool] = {

@@ -6,7 +6,7 @@ in :mod:`msdnet.runtime.sim.radar` documents how the radar columns are used.
 
 The radar values are effective ones: they fold in what the model leaves out (antenna gains,
 processing losses) and were tuned so that simulated scans land in the VoD statistics bands
-(``msdnet.runtime.stats``). Their ordering is the physical one: per unit area at normal
+(``msdnet.runtime.io.datasets.stats``). Their ordering is the physical one: per unit area at normal
 incidence, metal (13.5 dB diffuse, +37.5 dB specular lobe) >> facade (4.5) > vegetation (1.5)
 > people (-6.5) >> asphalt (-12.5, and nearly always seen at grazing incidence).
 """

@@ -62,7 +62,7 @@ at wave physics. One scan, step by step:
 
 Output rows are in the radar frame: float32 ``x y z rcs v_r v_r_compensated time``. The
 defaults of :class:`RadarConfig` and the material table were tuned so that simulated folders
-land in the VoD bands of ``msdnet.runtime.stats.REALISM_TARGETS`` (checked in tests/test_sim.py).
+land in the VoD bands of ``msdnet.runtime.io.datasets.stats.REALISM_TARGETS`` (checked in tests/test_sim.py).
 """
 
 from __future__ import annotations

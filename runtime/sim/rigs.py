@@ -18,7 +18,7 @@ The Astyx rig keeps the VoD 7-column ``.bin`` rows so the VoD reader reads it, w
     column 5 (``v_r_compensated``)        the simulator's ego-compensated v_r (VoD sign), kept
     column 6 (``time``)                   0
 
-``--dataset sim-astyx`` (``runtime/datasets/sim_astyx.py``) reads such a folder with the Astyx
+``--dataset sim-astyx`` (``runtime/io/datasets/sim_astyx.py``) reads such a folder with the Astyx
 names, radar columns ``x y z v_r mag`` (as ``--dataset astyx``), so a model pretrained on it is
 fine-tuned on Astyx with the same inputs.
 """

@@ -1,6 +1,6 @@
 """Exact sparse 3D convolution as Gather -> Reshape -> MatMul over a precomputed rulebook.
 
-A rulebook (built by :mod:`msdnet.runtime.rulebook` from voxel coordinates alone) is an
+A rulebook (built by :mod:`msdnet.runtime.engine.rulebook` from voxel coordinates alone) is an
 ``(M, 27)`` int table: for output voxel ``o`` and kernel tap ``k = (kz*3 + ky)*3 + kx`` it holds
 the input row read by that tap, or the sentinel ``V_in`` (number of input rows) where there is
 none. The network appends one zero row to the input so the sentinel reads zeros. Submanifold

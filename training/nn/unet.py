@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from msdnet.runtime.ddim import alphas_cumprod
+from msdnet.runtime.engine.ddim import alphas_cumprod
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.blocks import TimeEmbedding, group_norm
 
@@ -185,7 +185,7 @@ class R2LDMStep(nn.Module):
     otherwise both in one batch of 2B).
 
     forward(x_t (B, C, H, W), cond (B, C, H, W), t (1,), abar_t (1,), abar_prev (1,)) -> x_prev
-    (the input order of ``runtime.onnx_spec.R2LDM_STEP``).
+    (the input order of ``runtime.model.onnx_spec.R2LDM_STEP``).
     """
 
     def __init__(self, unet: R2LDMUNet, x0_clip: float = 0.0, guidance: float = 1.0) -> None:

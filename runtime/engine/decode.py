@@ -1,0 +1,247 @@
+"""Occupancy decoder (numba): dense occupancy + offsets -> points with confidence.
+
+Every voxel with ``occupancy > threshold`` (compared in float32) becomes one point at its voxel
+centre plus its predicted offset, in linear-index order ``((z * H) + y) * W + x`` (deterministic).
+Centre of voxel ``[z, y, x]`` per axis: ``lo + (index + 0.5) * voxel_size``; the centre and the
+offset are added in float64, then cast to float32. Confidence is the occupancy value.
+
+One branch-free pass over the dense grid (4.1M voxels on the paper grid) collects the linear
+indices of the hits; a second pass over the hits only writes the points.
+
+``decode_packed`` reads the head's packed layout (``onnx_spec.RECON_HEAD``: axis 0 the child
+``(dz * 2 + dy) * 2 + dx`` of half-scale voxel ``[z2, y2, x2]``) and gives exactly the points of
+``decode_occupancy`` on the dense grid, in the same order; ``unpack_children`` is the plain
+numpy conversion, for comparisons outside the hot path.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.voxelize import grid_arrays
+
+
+@njit(cache=True, inline="always")
+def _put_point(points: np.ndarray, t: int, lo: np.ndarray, size: np.ndarray, x: int, y: int, z: int,
+               dx: np.float32, dy: np.float32, dz: np.float32) -> None:  # fmt: skip
+    """points[t] = centre of voxel [z, y, x] plus the offset [dx, dy, dz]: the sum in float64, the
+    store in float32 (the rule both decoders share)."""
+    points[t, 0] = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(dx))
+    points[t, 1] = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(dy))
+    points[t, 2] = np.float32(lo[2] + (z + 0.5) * size[2] + np.float64(dz))
+
+
+@njit(cache=True)
+def _decode_kernel(
+    occupancy: np.ndarray, offsets: np.ndarray, lo: np.ndarray, size: np.ndarray, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """occupancy (D, H, W) float32, offsets (3, D, H, W) float32 [dx, dy, dz], lo/size (3,)
+    float64 [x, y, z], threshold float32 -> points (M, 3) float32 [x, y, z], confidence (M,)."""
+    d, h, w = occupancy.shape
+    n = d * h * w
+    occ = occupancy.reshape(n)  # (D*H*W,) in linear-index order
+    off = offsets.reshape(3, n)  # (3, D*H*W) [dx, dy, dz]
+    # Branch-free: the slot is written every time and kept only on a hit. Pages of the buffer past
+    # the last hit are never touched, so a sparse occupancy costs little memory.
+    hits = np.empty(n, np.int32)
+    m = 0
+    for i in range(n):
+        hits[m] = i
+        m += occ[i] > threshold
+    points = np.empty((m, 3), np.float32)
+    confidence = np.empty(m, np.float32)
+    for t in range(m):
+        i = hits[t]
+        x = i % w
+        y = (i // w) % h
+        z = i // (w * h)
+        _put_point(points, t, lo, size, x, y, z, off[0, i], off[1, i], off[2, i])
+        confidence[t] = occ[i]
+    return points, confidence
+
+
+def decode_occupancy(
+    occupancy: np.ndarray, offsets: np.ndarray, grid: GridConfig, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Threshold the occupancy and place one point per kept voxel (rules in the module docstring).
+
+    occupancy: (D, H, W) float32 in [0, 1]; offsets: (3, D, H, W) float32 [dx, dy, dz] metres;
+    (D, H, W) must equal ``grid.shape_zyx``. Returns points (M, 3) float32 [x, y, z] and
+    confidence (M,) float32. Raises ValueError on mismatched shapes.
+    """
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    if occ.size >= 2**31:
+        raise ValueError(f"occupancy of {occ.size} voxels exceeds the int32 index")
+    off = np.ascontiguousarray(offsets, dtype=np.float32)
+    if occ.shape != tuple(grid.shape_zyx):
+        raise ValueError(f"occupancy must be {grid.shape_zyx} (D, H, W), got {occ.shape}")
+    if off.shape != (3, *occ.shape):
+        raise ValueError(f"offsets must be (3, *{occ.shape}) [dx, dy, dz], got {off.shape}")
+    lo, _, size, _ = grid_arrays(grid)
+    return _decode_kernel(occ, off, lo, size, np.float32(threshold))
+
+
+@njit(cache=True)
+def _decode_packed_kernel(
+    occupancy: np.ndarray,
+    offsets: np.ndarray,
+    shape_zyx: np.ndarray,
+    lo: np.ndarray,
+    size: np.ndarray,
+    threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """occupancy (8, D2, H2, W2), offsets (8, 3, D2, H2, W2) packed; shape_zyx (3,) int64 the
+    dense (D, H, W) -> points (M, 3) float32, confidence (M,) in dense linear-index order."""
+    d, h, w = shape_zyx[0], shape_zyx[1], shape_zyx[2]
+    hits = np.empty(d * h * w, np.int32)
+    m = 0
+    for z in range(d):
+        for y in range(h):
+            row = ((z & 1) * 2 + (y & 1)) * 2
+            for x in range(w):
+                hits[m] = (z * h + y) * w + x
+                m += occupancy[row + (x & 1), z >> 1, y >> 1, x >> 1] > threshold
+    points = np.empty((m, 3), np.float32)
+    confidence = np.empty(m, np.float32)
+    for t in range(m):
+        i = hits[t]
+        x = i % w
+        y = (i // w) % h
+        z = i // (w * h)
+        child = ((z & 1) * 2 + (y & 1)) * 2 + (x & 1)
+        z2, y2, x2 = z >> 1, y >> 1, x >> 1
+        cell = offsets[child, :, z2, y2, x2]  # (3,) [dx, dy, dz]
+        _put_point(points, t, lo, size, x, y, z, cell[0], cell[1], cell[2])
+        confidence[t] = occupancy[child, z2, y2, x2]
+    return points, confidence
+
+
+def packed_shape(grid: GridConfig) -> tuple[int, int, int]:
+    """(D2, H2, W2): half-scale voxels covering the dense grid, ``ceil(n / 2)`` per axis."""
+    return tuple((n + 1) // 2 for n in grid.shape_zyx)  # type: ignore[return-value]
+
+
+def decode_packed(
+    occupancy: np.ndarray, offsets: np.ndarray, grid: GridConfig, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``decode_occupancy`` on the packed head output, without unpacking it.
+
+    occupancy: (8, D2, H2, W2) float32; offsets: (8, 3, D2, H2, W2) float32 [dx, dy, dz] metres;
+    ``(D2, H2, W2) == packed_shape(grid)``. Same points and order as ``decode_occupancy`` on
+    ``unpack_children`` of the inputs. Raises ValueError on mismatched shapes.
+    """
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    off = np.ascontiguousarray(offsets, dtype=np.float32)
+    half = packed_shape(grid)
+    if occ.shape != (8, *half):
+        raise ValueError(f"packed occupancy must be (8, *{half}), got {occ.shape}")
+    if off.shape != (8, 3, *half):
+        raise ValueError(f"packed offsets must be (8, 3, *{half}), got {off.shape}")
+    if 8 * occ[0].size >= 2**31:
+        raise ValueError(f"occupancy of {8 * occ[0].size} voxels exceeds the int32 index")
+    lo, _, size, _ = grid_arrays(grid)
+    shape = np.asarray(grid.shape_zyx, dtype=np.int64)
+    return _decode_packed_kernel(occ, off, shape, lo, size, np.float32(threshold))
+
+
+@njit(cache=True)
+def _decode_sparse_kernel(
+    occupancy: np.ndarray,
+    offsets: np.ndarray,
+    voxels: np.ndarray,
+    shape_zyx: np.ndarray,
+    lo: np.ndarray,
+    size: np.ndarray,
+    threshold: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """occupancy (N, 8), offsets (N, 8, 3), voxels (N,) int64 linear half-scale indices;
+    shape_zyx (3,) int64 the dense (D, H, W) -> points (M, 3), confidence (M,) in dense
+    linear-index order (children outside the dense grid are skipped, as the dense crop does)."""
+    d, h, w = shape_zyx[0], shape_zyx[1], shape_zyx[2]
+    h2, w2 = (h + 1) // 2, (w + 1) // 2
+    n = voxels.shape[0]
+    keys = np.empty(8 * n, np.int64)  # dense linear index of each hit
+    slots = np.empty(8 * n, np.int64)  # row * 8 + child of each hit
+    m = 0
+    for r in range(n):
+        v = voxels[r]
+        x2 = v % w2
+        y2 = (v // w2) % h2
+        z2 = v // (w2 * h2)
+        for child in range(8):
+            z = 2 * z2 + (child >> 2)
+            y = 2 * y2 + ((child >> 1) & 1)
+            x = 2 * x2 + (child & 1)
+            if z < d and y < h and x < w and occupancy[r, child] > threshold:
+                keys[m] = (z * h + y) * w + x
+                slots[m] = r * 8 + child
+                m += 1
+    order = np.argsort(keys[:m])
+    points = np.empty((m, 3), np.float32)
+    confidence = np.empty(m, np.float32)
+    for t in range(m):
+        i = keys[order[t]]
+        r = slots[order[t]] // 8
+        child = slots[order[t]] % 8
+        x = i % w
+        y = (i // w) % h
+        z = i // (w * h)
+        _put_point(
+            points, t, lo, size, x, y, z, offsets[r, child, 0], offsets[r, child, 1], offsets[r, child, 2]
+        )
+        confidence[t] = occupancy[r, child]
+    return points, confidence
+
+
+def decode_sparse(
+    occupancy: np.ndarray, offsets: np.ndarray, voxels: np.ndarray, grid: GridConfig, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``decode_occupancy`` on the coarse-to-fine head's output (``onnx_spec.RECON_HEAD_SPARSE``).
+
+    occupancy: (N, 8) float32; offsets: (N, 8, 3) float32 [dx, dy, dz] metres; voxels: (N,)
+    int64 linear half-scale indices ``(z2 * H2 + y2) * W2 + x2`` with ``(D2, H2, W2) ==
+    packed_shape(grid)``. Same points and order as ``decode_packed`` on the dense head's output
+    when every half-scale voxel with a child above the threshold is among ``voxels``. Raises
+    ValueError on mismatched shapes or an index outside the half-scale grid.
+    """
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    off = np.ascontiguousarray(offsets, dtype=np.float32)
+    vox = np.ascontiguousarray(voxels, dtype=np.int64)
+    n = vox.shape[0] if vox.ndim == 1 else -1
+    if occ.shape != (n, 8) or off.shape != (n, 8, 3):
+        raise ValueError(
+            f"sparse head output must be (N, 8), (N, 8, 3), (N,); got {occ.shape}, {off.shape}, {vox.shape}"
+        )
+    half = packed_shape(grid)
+    if n and (vox.min() < 0 or vox.max() >= half[0] * half[1] * half[2]):
+        raise ValueError(f"voxel index outside the half-scale grid {half}")
+    lo, _, size, _ = grid_arrays(grid)
+    shape = np.asarray(grid.shape_zyx, dtype=np.int64)
+    return _decode_sparse_kernel(occ, off, vox, shape, lo, size, np.float32(threshold))
+
+
+def unpack_children(packed: np.ndarray, shape_zyx: tuple[int, int, int]) -> np.ndarray:
+    """(8, ..., D2, H2, W2) packed -> (..., D, H, W) dense (numpy transpose, then crop)."""
+    lead = packed.shape[1:-3]
+    d2, h2, w2 = packed.shape[-3:]
+    x = packed.reshape(2, 2, 2, *lead, d2, h2, w2)  # (dz, dy, dx, ..., D2, H2, W2)
+    k = len(lead)
+    axes = (*range(3, 3 + k), 3 + k, 0, 4 + k, 1, 5 + k, 2)  # (..., D2, dz, H2, dy, W2, dx)
+    dense = x.transpose(axes).reshape(*lead, 2 * d2, 2 * h2, 2 * w2)
+    d, h, w = shape_zyx
+    return np.ascontiguousarray(dense[..., :d, :h, :w])
+
+
+def warmup() -> None:
+    """Compile (or load from numba's cache) the decoder with a tiny input."""
+    grid = GridConfig((0.0, 0.0, 0.0, 1.0, 1.0, 1.0), (0.5, 0.5, 0.5))
+    occ = np.zeros(grid.shape_zyx, np.float32)
+    occ[0, 1, 0] = 0.9
+    decode_occupancy(occ, np.zeros((3, *grid.shape_zyx), np.float32), grid, 0.5)
+    half = packed_shape(grid)
+    decode_packed(np.zeros((8, *half), np.float32), np.zeros((8, 3, *half), np.float32), grid, 0.5)
+    decode_sparse(
+        np.full((1, 8), 0.9, np.float32), np.zeros((1, 8, 3), np.float32), np.zeros(1, np.int64), grid, 0.5
+    )

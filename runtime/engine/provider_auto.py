@@ -1,0 +1,336 @@
+"""``--provider auto``: per graph, the faster of onnxruntime (CPU provider) and OpenVINO here.
+
+At load (``Pipeline(artifact, "auto")``) every graph is first opened on onnxruntime; its inputs
+are then the model's own: a seeded 300-point scan spread over the grid box goes through the
+pipeline's voxelizer and rulebooks, the encoder, the adapter (MSDNet) and the manifest's T_m loop,
+and each graph keeps the inputs it saw (the step graph: those of the middle step; the
+coarse-to-fine head: the manifest's gate, 0.5 without one). On those inputs each graph runs on
+both engines through the IOBinding path the pipeline uses, ``REPEATS`` interleaved blocks (order
+rotated per repeat, each block about ``BLOCK_S`` long), and keeps:
+
+- OpenVINO when its median is at least ``MARGIN`` faster *and* its outputs agree with
+  onnxruntime's within the export tolerances (``AGREE_REL_TOL``, ``AGREE_COS_TOL``, and for the
+  coarse-to-fine head's gated voxels ``AGREE_E2E_TOL``: the values of ``export.verify``); else
+  onnxruntime (near ties stay on the default engine);
+- onnxruntime, with the reason, for a graph OpenVINO cannot load (``rgfd_adapter.onnx``: no
+  DeformConv in its ONNX front end) or when OpenVINO is not installed.
+
+Picks are cached in ``$XDG_CACHE_HOME/msdnet/providers.json`` (default ``~/.cache``), one entry
+per graph keyed by the model hash (sha256 of the manifest, which lists every graph's sha256 and
+the gate), the graph, its threads, the CPU model and core count and both library versions; the
+file is rewritten atomically (temporary file, then ``os.replace``) and one that cannot be read
+is replaced. An unwritable cache only costs a measurement per process. Within a process picks
+are also kept in memory. Outputs are within the export tolerances of ``--provider cpu``, not
+byte-equal to them: ``cpu`` stays the byte-reproducible default.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+import platform
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime as ort
+
+from msdnet.runtime.model import onnx_spec
+
+# a runtime.engine.pipeline.Pipeline; not imported, because the pipeline imports this module
+Pipeline = Any
+
+ONNXRUNTIME, OPENVINO = "onnxruntime", "openvino"
+REPEATS = 5  # interleaved timed blocks per engine and graph
+BLOCK_S = 0.02  # a timed block repeats the call until about this long (1 to MAX_CALLS calls)
+MAX_CALLS = 50
+MARGIN = 0.03  # OpenVINO is picked only when at least this much faster (median)
+AGREE_REL_TOL = 1e-4  # = export.verify.GRAPH_REL_TOL (tests/test_provider_auto.py checks)
+AGREE_COS_TOL = 1e-6  # = export.verify.GRAPH_COS_TOL
+AGREE_E2E_TOL = 0.002  # = export.verify.E2E_DIFF_TOL: voxels gated by one engine only (sparse head)
+CACHE_VERSION = 1
+SCAN_POINTS = 300
+_MEMO: dict[str, dict[str, Any]] = {}  # cache key -> entry, this process
+
+
+@dataclass(frozen=True)
+class EnginePick:
+    """The engine ``auto`` runs one graph on, and why."""
+
+    graph: str  # graph file name
+    engine: str  # ONNXRUNTIME or OPENVINO
+    ms: dict[str, float] = field(default_factory=dict)  # median ms per call by engine (measured ones)
+    reason: str = ""  # one line: the comparison, or why OpenVINO was not an option
+    cached: bool = False  # taken from the cache (measured by an earlier load)
+
+    def line(self) -> str:
+        times = ", ".join(f"{e} {v:.3f} ms" for e, v in self.ms.items())
+        source = "cached" if self.cached else "measured"
+        return f"{self.graph}: {self.engine} ({times + '; ' if times else ''}{self.reason}; {source})"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"engine": self.engine, "ms": dict(self.ms), "reason": self.reason, "cached": self.cached}
+
+
+@dataclass(frozen=True)
+class AutoReport:
+    """Every graph's pick and where the cache is."""
+
+    picks: dict[str, EnginePick]  # graph file -> pick, in pipeline order
+    cache: Path  # the cache file
+    cache_note: str  # "read", "written" or why it was not written
+
+    def lines(self) -> list[str]:
+        return [f"provider auto: {p.line()}" for p in self.picks.values()] + [
+            f"provider auto: cache {self.cache} ({self.cache_note})"
+        ]
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "picks": {f: p.to_json() for f, p in self.picks.items()},
+            "cache": str(self.cache),
+            "cache_note": self.cache_note,
+        }
+
+
+def cache_path() -> Path:
+    """``$XDG_CACHE_HOME/msdnet/providers.json``; ``~/.cache`` when unset or not absolute."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    root = Path(base) if base and Path(base).is_absolute() else Path.home() / ".cache"
+    return root / "msdnet" / "providers.json"
+
+
+def cpu_model() -> str:
+    """The CPU's model name (``/proc/cpuinfo``, else ``platform``) and logical core count."""
+    name = ""
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace").splitlines():
+            if line.lower().startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{name or platform.processor() or platform.machine()} x{os.cpu_count()}"
+
+
+def openvino_version() -> str | None:
+    """The installed OpenVINO's version, None when it is not installed."""
+    if importlib.util.find_spec("openvino") is None:
+        return None
+    import openvino as ov
+
+    return str(ov.__version__)
+
+
+def model_hash(manifest: dict[str, Any]) -> str:
+    """sha256 of the manifest (canonical JSON): it lists every graph's sha256 and the gate."""
+    return hashlib.sha256(json.dumps(manifest, sort_keys=True).encode()).hexdigest()
+
+
+def cache_key(manifest: dict[str, Any], graph: str, threads: int | None) -> str:
+    ov = openvino_version() or "none"
+    parts = [model_hash(manifest), graph, f"threads {threads or 'default'}", cpu_model()]
+    return " | ".join([*parts, f"onnxruntime {ort.__version__}", f"openvino {ov}"])
+
+
+def read_cache(path: Path) -> dict[str, dict[str, Any]]:
+    """The cache's entries; empty when the file is missing, unreadable or of another version."""
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    ok = (
+        isinstance(doc, dict) and doc.get("version") == CACHE_VERSION and isinstance(doc.get("entries"), dict)
+    )
+    return doc["entries"] if ok else {}
+
+
+def write_cache(path: Path, new: dict[str, dict[str, Any]]) -> str:
+    """Merge ``new`` into the cache file atomically; -> "written" or why not (one line)."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        entries = {**read_cache(path), **new}
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".providers-", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                json.dump({"version": CACHE_VERSION, "entries": entries}, f, indent=1, sort_keys=True)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    except OSError as err:
+        return f"not written: {type(err).__name__}: {err.strerror or err}"
+    return "written"
+
+
+def failure_reason(err: Exception) -> str:
+    """One line: OpenVINO's conversion summary (e.g. "No conversion rule found for operations:
+    DeformConv-19") when it has one, else the first line of the message."""
+    lines = [ln.strip(" -") for ln in str(err).splitlines() if ln.strip()]
+    summary = [ln for ln in lines if ln.startswith(("No conversion rule", "Conversion is failed"))]
+    return f"{type(err).__name__}: {'; '.join(summary or lines[:1])[:200]}"
+
+
+def graph_inputs(pipe: Pipeline) -> dict[str, dict[str, np.ndarray]]:
+    """Each graph's inputs on a seeded scan over the grid box (module docstring), run through the
+    pipeline's own sessions with plain ``session.run``."""
+    grid = pipe.artifact.grid
+    lo, hi = np.asarray(grid.point_range[:3], np.float32), np.asarray(grid.point_range[3:], np.float32)
+    rng = np.random.default_rng(0)
+    pts = np.zeros((SCAN_POINTS, len(pipe.columns)), np.float32)
+    pts[:, :3] = lo + (hi - lo) * rng.random((SCAN_POINTS, 3), dtype=np.float32)
+    enc, _, _ = pipe.encoder_feeds(pts)
+    feeds = {onnx_spec.ENCODER.file: enc}
+    (f_s,) = pipe.sessions[onnx_spec.ENCODER.file].run(None, enc)
+    x = rng.standard_normal(pipe.bev_shape, dtype=np.float32)
+    if pipe.kind == "student":
+        feeds[onnx_spec.RGFD_ADAPTER.file] = {"bev_features": f_s, "noise": x}
+        (x,) = pipe.sessions[onnx_spec.RGFD_ADAPTER.file].run(None, feeds[onnx_spec.RGFD_ADAPTER.file])
+    spec = onnx_spec.DENOISER_STEP if pipe.kind == "student" else onnx_spec.R2LDM_STEP
+    coeffs = pipe.coefficients()
+    for k, row in enumerate(coeffs):
+        feed = {"x_t": x, "cond": f_s, "t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}
+        feed = {n: feed[n] for n in spec.inputs}
+        if k == len(coeffs) // 2:
+            feeds[spec.file] = feed
+        (x,) = pipe.sessions[spec.file].run(None, feed)
+    feeds[onnx_spec.RECON_HEAD.file] = {"features": x}
+    if onnx_spec.RECON_HEAD_SPARSE.file in pipe.sessions:
+        gate = 0.5 if pipe.artifact.gate is None else pipe.artifact.gate
+        feeds[onnx_spec.RECON_HEAD_SPARSE.file] = {"features": x, "gate": np.full(1, gate, np.float32)}
+    return feeds
+
+
+def _bound(sess: Any, feed: dict[str, np.ndarray], ref: list[np.ndarray]) -> Any:
+    """An IOBinding of ``feed`` with outputs bound like the pipeline's (static: preallocated)."""
+    b = sess.io_binding()
+    for name, arr in feed.items():
+        b.bind_ortvalue_input(name, ort.OrtValue.ortvalue_from_numpy(np.ascontiguousarray(arr)))
+    for out, arr in zip(sess.get_outputs(), ref, strict=True):
+        if all(isinstance(d, int) for d in out.shape):
+            b.bind_ortvalue_output(out.name, ort.OrtValue.ortvalue_from_numpy(np.empty_like(arr)))
+        else:
+            b.bind_output(out.name, "cpu")
+    return b
+
+
+def time_engines(
+    sessions: dict[str, Any], feed: dict[str, np.ndarray], ref: list[np.ndarray]
+) -> dict[str, float]:
+    """Median ms per call of each engine on ``feed``: ``REPEATS`` interleaved blocks, order rotated."""
+    binds = {e: _bound(s, feed, ref) for e, s in sessions.items()}
+    calls = {}
+    for e, s in sessions.items():
+        s.run_with_iobinding(binds[e])  # warm-up
+        t0 = time.perf_counter()
+        s.run_with_iobinding(binds[e])
+        calls[e] = int(np.clip(BLOCK_S / max(time.perf_counter() - t0, 1e-6), 1, MAX_CALLS))
+    samples: dict[str, list[float]] = {e: [] for e in sessions}
+    names = list(sessions)
+    for r in range(REPEATS):
+        for e in names[r % len(names) :] + names[: r % len(names)]:
+            s, b, n = sessions[e], binds[e], calls[e]
+            t0 = time.perf_counter()
+            for _ in range(n):
+                s.run_with_iobinding(b)
+            samples[e].append((time.perf_counter() - t0) / n)
+    return {e: float(np.median(v)) * 1e3 for e, v in samples.items()}
+
+
+def align_rows(
+    got: list[np.ndarray], ref: list[np.ndarray], names: list[str]
+) -> tuple[list, list, str | None]:
+    """The coarse-to-fine head's outputs (one row per gated voxel, ``voxels`` its ids) on the
+    voxels both engines gated: a voxel whose occupancy sits on the gate may fall on either side.
+    Up to ``AGREE_E2E_TOL`` of the voxels may be gated by one engine only; else why (one line)."""
+    if "voxels" not in names or all(a.shape == b.shape for a, b in zip(got, ref, strict=True)):
+        return got, ref, None
+    k = names.index("voxels")
+    common, ia, ib = np.intersect1d(got[k], ref[k], return_indices=True)
+    only = len(got[k]) + len(ref[k]) - 2 * len(common)
+    if only > AGREE_E2E_TOL * max(len(got[k]), len(ref[k])):
+        return got, ref, f"outputs differ from onnxruntime's: {only} of {len(ref[k])} gated voxels"
+    return [a[ia] for a in got], [b[ib] for b in ref], None
+
+
+def disagreement(got: list[np.ndarray], ref: list[np.ndarray], names: list[str] | None = None) -> str | None:
+    """None when every output agrees within the export tolerances, else why (one line). With
+    ``names`` (output names), gated rows are matched first (:func:`align_rows`)."""
+    got, ref, why = align_rows(got, ref, names or [])
+    if why is not None:
+        return why
+    for a, b in zip(got, ref, strict=True):
+        if a.shape != b.shape:
+            return f"outputs differ from onnxruntime's: shape {a.shape} != {b.shape}"
+        x, y = a.astype(np.float64).ravel(), b.astype(np.float64).ravel()
+        if not x.size:
+            continue
+        diff, scale = float(np.max(np.abs(x - y))), float(np.max(np.abs(y)))
+        rel = diff / scale if scale > 0 else diff
+        norm = float(np.linalg.norm(x) * np.linalg.norm(y))
+        cos = float(x @ y / norm) if norm > 0 else (1.0 if diff == 0 else 0.0)
+        if rel > AGREE_REL_TOL or cos < 1.0 - AGREE_COS_TOL:
+            return f"outputs differ from onnxruntime's: max rel {rel:.2e}, cosine {cos:.9f}"
+    return None
+
+
+def _measure(pipe: Pipeline, file: str, ov: Any, feed: dict[str, np.ndarray]) -> dict[str, Any]:
+    ref = pipe.sessions[file].run(None, feed)
+    names = [o.name for o in pipe.sessions[file].get_outputs()]
+    why = disagreement([np.asarray(a) for a in ov.run(None, feed)], ref, names)
+    ms = time_engines({ONNXRUNTIME: pipe.sessions[file], OPENVINO: ov}, feed, ref)
+    faster = ms[OPENVINO] <= (1.0 - MARGIN) * ms[ONNXRUNTIME]
+    if why is not None:
+        return {"engine": ONNXRUNTIME, "ms": ms, "reason": why}
+    ratio = f"openvino / onnxruntime {ms[OPENVINO] / ms[ONNXRUNTIME]:.2f}"
+    if faster:
+        return {"engine": OPENVINO, "ms": ms, "reason": ratio}
+    return {"engine": ONNXRUNTIME, "ms": ms, "reason": f"{ratio} (OpenVINO must be {MARGIN:.0%} faster)"}
+
+
+def _stays(reason: str) -> dict[str, Any]:
+    return {"engine": ONNXRUNTIME, "ms": {}, "reason": reason}
+
+
+def choose_engines(pipe: Pipeline, threads: dict[str, int | None]) -> AutoReport:
+    """Pick each graph's engine (module docstring) and put OpenVINO's sessions into
+    ``pipe.sessions`` where it won; the caller rebinds the buffers. ``threads``: per graph file."""
+    from msdnet.runtime.engine.openvino_session import OpenVinoSession
+
+    path, manifest = cache_path(), pipe.artifact.manifest
+    keys = {f: cache_key(manifest, f, threads[f]) for f in pipe.sessions}
+    stored = read_cache(path) if any(k not in _MEMO for k in keys.values()) else {}
+    have_ov = openvino_version() is not None
+    picks: dict[str, EnginePick] = {}
+    new: dict[str, dict[str, Any]] = {}
+    feeds: dict[str, dict[str, np.ndarray]] | None = None
+    for file in list(pipe.sessions):
+        entry = _MEMO.get(keys[file]) or stored.get(keys[file])
+        cached, ov = entry is not None, None
+        if not have_ov:
+            entry, cached = _stays("OpenVINO is not installed"), False
+        elif entry is None or entry.get("engine") == OPENVINO:
+            try:
+                ov = OpenVinoSession(pipe.artifact.graphs[file], threads[file])
+            except Exception as err:  # noqa: BLE001 - any conversion failure: this graph stays on onnxruntime
+                entry, cached = _stays(f"OpenVINO cannot load it: {failure_reason(err)}"), False
+        if entry is None:
+            feeds = graph_inputs(pipe) if feeds is None else feeds
+            try:
+                entry = _measure(pipe, file, ov, feeds[file])
+            except Exception as err:  # noqa: BLE001 - OpenVINO failing on these inputs: stay
+                entry = _stays(f"OpenVINO failed on the graph's inputs: {failure_reason(err)}")
+        if not cached and have_ov:
+            new[keys[file]] = entry
+        _MEMO[keys[file]] = entry
+        if entry["engine"] == OPENVINO and ov is not None:
+            pipe.sessions[file] = ov
+        ms = {str(k): float(v) for k, v in entry.get("ms", {}).items()}
+        picks[file] = EnginePick(file, entry["engine"], ms, str(entry.get("reason", "")), cached)
+    note = "read" if not new else write_cache(path, new)
+    return AutoReport(picks, path, note if have_ov else "not used: OpenVINO is not installed")

@@ -1,0 +1,112 @@
+"""Graph sessions: onnxruntime execution providers by short name, intra-op threads, no spinning;
+and ``openvino``: OpenVINO runs every graph it can load, onnxruntime's CPU provider the rest;
+``auto``: per graph, whichever of the two measured faster here (``runtime.engine.provider_auto``).
+
+onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve the numba
+voxelizer between graph calls, so spinning is always off (``session.intra_op.allow_spinning``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Any
+
+import onnxruntime as ort
+
+from msdnet.runtime.errors import MsdnetError
+
+# short name -> onnxruntime execution provider
+PROVIDERS: dict[str, str] = {
+    "cpu": "CPUExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "tensorrt": "TensorrtExecutionProvider",
+}
+OPENVINO = "openvino"  # not an onnxruntime provider: runtime.engine.openvino_session (the [openvino] extra)
+AUTO = (
+    "auto"  # per graph, the faster of onnxruntime's CPU provider and OpenVINO (runtime.engine.provider_auto)
+)
+# Graphs ``openvino`` runs with OpenVINO (f32, same threads): the heads, where it was faster in every
+# msdnet-bench latency run (docs/results/latency-*: sim-lite 2.5-2.75x, paper-width 1.5x, paper 1.0x).
+# The encoder (onnxruntime as fast or faster in 3 of 4 runs) and the step graph (50 calls a frame:
+# OpenVINO's per-call cost made the loop 1.06-2x slower in every preset) stay on onnxruntime, so
+# does rgfd_adapter.onnx (DeformConv: OpenVINO cannot load it).
+OPENVINO_GRAPHS = ("recon_head.onnx", "recon_head_sparse.onnx")
+
+
+def available_providers() -> list[str]:
+    """Short names of the providers this onnxruntime build offers (``cpu`` and ``auto`` always)."""
+    have = set(ort.get_available_providers())
+    names = [name for name, full in PROVIDERS.items() if full in have]
+    return names + ([OPENVINO] if importlib.util.find_spec("openvino") is not None else []) + [AUTO]
+
+
+def resolve_providers(provider: str) -> list[str]:
+    """Short provider name -> onnxruntime provider list, with CPU as the fallback for ops.
+
+    Raises :class:`MsdnetError` naming the available providers when ``provider`` is unknown
+    or not built into the installed onnxruntime.
+    """
+    name = provider.strip().lower()
+    have = available_providers()
+    if name == OPENVINO and name not in have:
+        raise MsdnetError("provider", "openvino needs the OpenVINO runtime: pip install 'msdnet[openvino]'")
+    if name in (OPENVINO, AUTO):  # the graphs OpenVINO cannot load (or loses) run on the CPU provider
+        return [PROVIDERS["cpu"]]
+    if name not in PROVIDERS or name not in have:
+        raise MsdnetError(
+            "provider",
+            f"{provider!r} is not available in onnxruntime {ort.__version__} (available: {', '.join(have)})",
+        )
+    chain = [PROVIDERS[name]]
+    if name == "tensorrt" and "cuda" in have:
+        chain.append(PROVIDERS["cuda"])
+    if name != "cpu":
+        chain.append(PROVIDERS["cpu"])
+    return chain
+
+
+def device_of(provider: str) -> str:
+    """OrtValue device type for buffers that live next to ``provider``'s kernels."""
+    return "cpu" if provider.strip().lower() in ("cpu", OPENVINO, AUTO) else "cuda"
+
+
+def session_options(threads: int | None = None) -> ort.SessionOptions:
+    """Options shared by every graph: ``threads`` intra-op threads (None: ORT default), no spin."""
+    opts = ort.SessionOptions()
+    opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    opts.inter_op_num_threads = 1
+    if threads is not None:
+        if threads < 1:
+            raise MsdnetError("threads", f"must be >= 1, got {threads}")
+        opts.intra_op_num_threads = int(threads)
+    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    opts.log_severity_level = 3  # errors only
+    return opts
+
+
+def create_session(model: bytes, name: str | Path, provider: str = "cpu", threads: int | None = None) -> Any:
+    """An inference session from serialized ONNX ``model`` bytes (already hash-checked).
+
+    Sessions are built from bytes so the file checked is exactly the file run. ``name`` is only
+    used in error messages. ``provider`` ``openvino``: an :class:`OpenVinoSession` (same API
+    subset) for the ``OPENVINO_GRAPHS`` (``name`` is the file name) when OpenVINO can load them,
+    else onnxruntime on the CPU; ``get_providers()`` says which.
+    """
+    providers = resolve_providers(provider)
+    if provider.strip().lower() == OPENVINO and Path(str(name)).name in OPENVINO_GRAPHS:
+        from msdnet.runtime.engine.openvino_session import OpenVinoSession
+
+        if threads is not None and threads < 1:
+            raise MsdnetError("threads", f"must be >= 1, got {threads}")
+        try:
+            return OpenVinoSession(model, threads)
+        except Exception:  # noqa: BLE001 - any conversion failure: this graph stays on onnxruntime
+            pass
+    try:
+        return ort.InferenceSession(model, sess_options=session_options(threads), providers=providers)
+    except Exception as err:  # onnxruntime raises its own exception types
+        cause = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise MsdnetError(name, f"onnxruntime cannot load this graph: {cause}") from err

@@ -1,0 +1,1 @@
+"""The front-ends: ``msdnet-infer`` (``infer``), ``msdnet-node`` (``live``), ``msdnet-data`` (``data``)."""

@@ -1,0 +1,1 @@
+"""``msdnet-data``: simulate, show, stats, pair."""

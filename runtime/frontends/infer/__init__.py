@@ -1,0 +1,1 @@
+"""``msdnet-infer``: the command and its modes (files, --workers, --dataset, bags, Ray)."""

@@ -1,0 +1,368 @@
+"""``msdnet-infer``: run an exported model over radar files, write dense clouds (no torch).
+
+Inputs are files or folders (the point-cloud files directly inside a folder, sorted) of any
+format ``runtime/io/files`` reads. Each output is ``OUT/<input stem>.<format>`` with columns
+``x y z confidence`` (radar frame, metres; confidence = occupancy). A ``.bin`` is read with
+``--layout`` / ``--columns``, else with the model's training layout (``runtime/io/layouts``). One bad
+file does not stop the others: the summary names it and the exit code is 1. Bad arguments exit 2
+with one line.
+``--keep-radar`` (off by default) appends the input radar points inside the grid box to every
+output, confidence 1 (``Pipeline.__call__(keep_radar=True)``); by default the output is the model's.
+
+Faults: ``--out`` must be a writable folder that holds no input (checked once, up front); a
+killed run leaves no worker process (each worker exits when its parent is gone) and the next
+run removes its temporary files; ``--skip-existing`` resumes a batch. Rows with NaN/Inf (or
+values beyond float32) are dropped and counted per file and in the summary. Same seed, same
+bytes: with the cpu provider, the same model, onnxruntime build and CPU, outputs do not depend
+on ``--workers`` or ``--threads`` (``--threads`` is kept as given in every worker; unset, each of
+N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --workers 1/2.
+``--trusted-key PUB`` refuses a model whose ``manifest.sig`` is missing or not by that key
+(``runtime/model/signing``).
+
+``--provider auto`` (``runtime/engine/provider_auto``) runs each graph on whichever of onnxruntime and
+OpenVINO measured faster here, measured once per model, CPU and library versions and cached;
+``-v`` prints the picks and times. Its outputs are within the export tolerances of ``cpu``'s.
+
+``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/frontends/infer/dataset``): each
+frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
+how much closer to the LiDAR the output is than the radar.
+
+Robotics (optional extras): ``BAG --topic T`` densifies a ROS 1/2 bag's PointCloud2 topic into a
+ROS 2 bag (``runtime/io/rosbag``), ``--ray [ADDRESS]`` runs the files on Ray actors
+(``runtime/frontends/infer/ray_batch``), ``--rerun FILE.rrd`` records the run for Rerun
+(``runtime/io/rerun_log``).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
+from typing import Any
+
+import click
+from tqdm import tqdm
+
+import msdnet.models
+from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.frontends.infer.guards import (
+    check_model_options,
+    check_out,
+    clamp_workers,
+    prepare_out,
+    usable_cores,
+)
+from msdnet.runtime.frontends.infer.worker import WORKER, _init_worker, _run_one
+from msdnet.runtime.io.files import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS
+from msdnet.runtime.io.layouts import LAYOUTS, resolve_bin_columns
+
+BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
+OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
+EXIT_SOME_FAILED = 1
+
+_WORKER = WORKER  # per-process pipeline and settings (runtime/frontends/infer/worker)
+
+
+def resolve_model(model: Path | None) -> Path:
+    """--model, or the bundled model; MsdnetError when neither exists."""
+    if model is not None:
+        return model
+    if (BUNDLED_MODEL / "manifest.json").is_file():
+        return BUNDLED_MODEL
+    raise MsdnetError(
+        "--model",
+        f"no model given and no bundled model at {BUNDLED_MODEL}; "
+        "pass --model DIR (a folder written by msdnet-export)",
+    )
+
+
+def collect_inputs(inputs: tuple[Path, ...]) -> list[Path]:
+    """Files as given, folders expanded to the readable files directly inside them (sorted)."""
+    files: list[Path] = []
+    for item in inputs:
+        if item.is_dir():
+            found = sorted(p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS)
+            if not found:
+                raise MsdnetError(item, f"folder holds no point-cloud file ({' '.join(READ_FORMATS)})")
+            files += found
+        elif item.exists():
+            files.append(item)
+        else:
+            raise MsdnetError(item, "no such file or folder")
+    return files
+
+
+def output_paths(files: list[Path], out: Path, fmt: str) -> list[Path]:
+    """``OUT/<stem>.<fmt>`` per input; MsdnetError on a name clash or an output equal to an input."""
+    targets = [out / f"{f.stem}.{fmt}" for f in files]
+    seen: dict[Path, Path] = {}
+    resolved_inputs = {f.resolve() for f in files}
+    for src, dst in zip(files, targets, strict=True):
+        if dst.resolve() in resolved_inputs:
+            raise MsdnetError(dst, "output path equals an input path; choose another --out")
+        if dst in seen:
+            raise MsdnetError(dst, f"inputs {seen[dst]} and {src} would write the same output")
+        seen[dst] = src
+    return targets
+
+
+def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple[str, int]:
+    failed = [r for r in rows if "error" in r]
+    ok = len(rows) - len(failed)
+    p_in = sum(r["points_in"] for r in rows if "error" not in r)
+    p_out = sum(r["points_out"] for r in rows if "error" not in r)
+    dropped = [r for r in rows if r.get("dropped")]
+    per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
+    skip = f", {skipped} skipped (output exists)" if skipped else ""
+    drop = f" ({sum(r['dropped'] for r in dropped)} NaN/Inf rows dropped)" if dropped else ""
+    lines = [
+        f"files: {ok} ok, {len(failed)} failed{skip}; points in {p_in}{drop}, out {p_out}; "
+        f"time {wall:.2f} s{per}"
+    ]
+    lines += [
+        f"  dropped: {r['file']}: {r['dropped']} rows with NaN/Inf (or beyond float32)" for r in dropped
+    ]
+    lines += [
+        f"  {'note' if r['points_out'] else 'empty'}: {r['file']}: {'; '.join(r['notes'])}"
+        for r in rows
+        if r.get("notes")
+    ]
+    lines += [f"  FAILED {r['error']}" for r in failed]
+    return "\n".join(lines), (EXIT_SOME_FAILED if failed else 0)
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--model", type=click.Path(path_type=Path), help="msdnet-export folder [bundled].")
+@click.option("--out", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option("--format", "fmt", type=click.Choice(WRITE_FORMATS), default="npy", show_default=True)
+@click.option("--steps", type=click.IntRange(min=1), help="DDIM steps [manifest T_m].")
+@click.option("--threshold", type=float, help="Occupancy threshold [manifest].")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Noise seed.")
+@click.option("--png", is_flag=True, help="Also write a BEV picture per file.")
+@click.option(
+    "--keep-radar",
+    is_flag=True,
+    help="Output = model points + the input radar points in the grid (confidence 1). Off: model only.",
+)
+@click.option(
+    "--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Processes (<= CPU cores)."
+)
+@click.option("--skip-existing", is_flag=True, help="Skip inputs whose output exists (resume a batch).")
+@click.option(
+    "--trusted-key",
+    type=click.Path(path_type=Path),
+    help="Ed25519 public key (PEM): refuse a model not signed with it (msdnet-export --sign).",
+)
+@click.option(
+    "--provider",
+    default="cpu",
+    show_default=True,
+    help="cpu (byte-reproducible), auto (per graph the faster of onnxruntime and OpenVINO), openvino, "
+    "cuda or tensorrt.",
+)
+@click.option("-v", "--verbose", is_flag=True, help="With --provider auto: print each graph's engine.")
+@click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
+@click.option(
+    "--dataset",
+    type=click.Choice(["vod", "astyx", "sim"]),
+    help="INPUTS is one dataset folder: densify its radar and compare with its LiDAR.",
+)
+@click.option("--split", type=click.Choice(["train", "val"]), help="With --dataset: one split [all].")
+@click.option("--frames", "max_frames", type=click.IntRange(min=1), help="With --dataset: first N frames.")
+@click.option(
+    "--topic", help="INPUTS is one ROS 1/2 bag: densify this PointCloud2 topic (runtime/io/rosbag)."
+)
+@click.option("--field", "fields", multiple=True, metavar="COLUMN=FIELD", help="With --topic: map a field.")
+@click.option(
+    "--bag-storage", type=click.Choice(["sqlite3", "mcap"]), help="With --topic [input's; ROS 1: mcap]."
+)
+@click.option(
+    "--ray",
+    "ray_address",
+    is_flag=False,
+    flag_value="local",
+    metavar="[ADDRESS]",
+    help="Run the files on Ray actors (runtime/frontends/infer/ray_batch): local, auto or ray://HOST:PORT.",
+)
+@click.option(
+    "--ray-timeout",
+    type=click.FloatRange(min=0.0, min_open=True),
+    default=30.0,
+    show_default=True,
+    help="With --ray ADDRESS: seconds it may take to answer.",
+)
+@click.option("--rerun", type=click.Path(path_type=Path), help="Also write a Rerun recording FILE.rrd.")
+@click.option(
+    "--layout", type=click.Choice(list(LAYOUTS)), help=".bin columns (runtime/io/layouts) [the model's data]."
+)
+@click.option("--columns", "bin_columns", metavar="X,Y,Z", help=".bin columns by name (not with --layout).")
+@one_line_errors
+def main(
+    inputs: tuple[Path, ...],
+    model: Path | None,
+    out: Path,
+    fmt: str,
+    steps: int | None,
+    threshold: float | None,
+    seed: int,
+    png: bool,
+    keep_radar: bool,
+    workers: int,
+    skip_existing: bool,
+    trusted_key: Path | None,
+    provider: str,
+    threads: int | None,
+    dataset: str | None,
+    split: str | None,
+    max_frames: int | None,
+    topic: str | None,
+    fields: tuple[str, ...],
+    bag_storage: str | None,
+    ray_address: str | None,
+    ray_timeout: float,
+    rerun: Path | None,
+    layout: str | None,
+    bin_columns: str | None,
+    verbose: bool = False,
+) -> None:
+    """Densify radar point clouds with an exported MSDNet (or R2LDM) model."""
+
+    model_dir = resolve_model(model)
+    artifact = check_model_options(model_dir, trusted_key, provider, threshold, steps)
+    opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
+    opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
+    opts["bin_columns"], _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
+    if rerun is not None:
+        from msdnet.runtime.io.rerun_log import check_path
+
+        check_path(rerun)  # writable .rrd, checked before any work like --out
+    if topic is not None:
+        if dataset or ray_address or png or skip_existing or workers > 1:
+            raise MsdnetError(
+                "--topic", "one bag, one process: not with --dataset/--ray/--png/--skip-existing/--workers"
+            )
+        from msdnet.runtime.io.rosbag import bag_mode
+
+        _announce_auto(artifact, provider, threads, verbose)
+        start = time.perf_counter()
+        rows = bag_mode(artifact, provider, threads, inputs, out, topic, fields, bag_storage, rerun, opts)
+        text, code = _summary(rows, time.perf_counter() - start)
+        click.echo(text.replace("files:", "messages:", 1).replace(" s/file", " s/message"))
+        raise SystemExit(code)
+    if fields or bag_storage:
+        raise MsdnetError("--field/--bag-storage", "only apply with --topic")
+    if ray_address is not None and (
+        dataset or ray_address not in ("local", "auto") and Path(ray_address).exists()
+    ):
+        raise MsdnetError("--ray", f"takes a cluster address, not {ray_address!r}; put --ray after INPUTS")
+    if ray_address is not None and workers > 1:
+        raise MsdnetError("--workers", "not with --ray (Ray runs one actor per --threads CPUs)")
+    check_out(out, inputs)
+    if dataset is not None:
+        if skip_existing:
+            raise MsdnetError("--skip-existing", "only applies to file mode, not --dataset")
+        _announce_auto(artifact, provider, threads, verbose)
+        _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, opts)
+        if rerun is not None:
+            from msdnet.runtime.io.rerun_log import log_dataset
+
+            log_dataset(rerun, dataset, inputs[0], out, split, max_frames, fmt, artifact.grid)
+        return
+    if split is not None or max_frames is not None:
+        raise MsdnetError("--split/--frames", "only apply with --dataset")
+    files = collect_inputs(inputs)
+    targets = output_paths(files, out, fmt)
+    prepare_out(out)  # writable, and a killed run's temporary files removed
+    start = time.perf_counter()
+    jobs = [(str(s), str(d)) for s, d in zip(files, targets, strict=True)]
+    skipped = 0
+    if skip_existing:
+        done = [Path(d).is_file() and (not png or Path(d).with_suffix(".png").is_file()) for _, d in jobs]
+        jobs, skipped = [j for j, d in zip(jobs, done, strict=True) if not d], sum(done)
+    workers = clamp_workers(workers, len(jobs))
+    if threads is None and workers > 1:
+        threads = max(1, usable_cores() // workers)  # outputs do not depend on it
+    auto_pipe = _announce_auto(artifact, provider, threads, verbose)  # workers then read its cache
+    bar = tqdm(total=len(jobs), unit="file", desc="msdnet-infer", disable=None)
+    rows: list[dict[str, Any]] = []
+    if ray_address is not None:
+        from msdnet.runtime.frontends.infer.ray_batch import run_ray
+
+        rows = run_ray(ray_address, artifact, provider, threads, jobs, opts, bar, ray_timeout)
+    elif workers == 1:
+        from msdnet.runtime.engine.pipeline import Pipeline
+
+        pipe = auto_pipe or Pipeline(artifact, provider=provider, threads=threads)
+        _WORKER.update(pipe=pipe, opts=opts)
+        for job in jobs:
+            rows.append(_run_one(*job))
+            bar.update()
+    else:
+        ctx = multiprocessing.get_context("spawn")  # no onnxruntime/numba threads across fork
+        key = None if trusted_key is None else str(trusted_key)
+        initargs = (str(model_dir), provider, threads, opts, os.getpid(), key)
+        with ProcessPoolExecutor(workers, ctx, _init_worker, initargs) as pool:
+            futures = {pool.submit(_run_one, *job): job for job in jobs}
+            for fut in as_completed(futures):
+                try:
+                    rows.append(fut.result())
+                except Exception as err:  # a worker died (killed, out of memory) or failed to start
+                    cause = " ".join(str(err).split())[:200] or type(err).__name__
+                    rows.append({"file": futures[fut][0], "error": f"{futures[fut][0]}: worker: {cause}"})
+                bar.update()
+        order = {src: i for i, (src, _) in enumerate(jobs)}
+        rows.sort(key=lambda r: order[r["file"]])
+    bar.close()
+    if rerun is not None:
+        from msdnet.runtime.io.rerun_log import log_files
+
+        log_files(rerun, jobs, rows)
+    text, code = _summary(rows, time.perf_counter() - start, skipped)
+    click.echo(text)
+    if code:
+        raise SystemExit(code)
+
+
+def _announce_auto(artifact: Any, provider: str, threads: int | None, verbose: bool) -> Any:
+    """``--provider auto``: pick each graph's engine once, here (measured, or read from the cache the
+    workers then read too); ``-v`` prints the picks. -> that Pipeline, None for other providers."""
+    if provider.strip().lower() != "auto":
+        return None
+    from msdnet.runtime.engine.pipeline import Pipeline
+
+    pipe = Pipeline(artifact, provider=provider, threads=threads)
+    if verbose:
+        click.echo("\n".join(pipe.auto.lines()), err=True)
+    return pipe
+
+
+def _dataset_mode(
+    artifact: Any,
+    provider: str,
+    threads: int | None,
+    dataset: str,
+    inputs: tuple[Path, ...],
+    out: Path,
+    split: str | None,
+    max_frames: int | None,
+    opts: dict[str, Any],
+) -> None:
+    from msdnet.runtime.engine.pipeline import Pipeline
+    from msdnet.runtime.frontends.infer.dataset import run_dataset, summary_lines
+
+    if len(inputs) != 1 or not inputs[0].is_dir():
+        raise MsdnetError(" ".join(map(str, inputs)), "--dataset takes exactly one dataset folder")
+    prepare_out(out)  # writable, and a killed run's temporary files removed
+    pipe = Pipeline(artifact, provider=provider, threads=threads)
+    rows, failed = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, opts)
+    name = "R2LDM" if artifact.kind == "r2ldm" else "MSDNet"
+    if opts["keep_radar"]:
+        name += "+radar"  # the scored output is the union (--keep-radar), not the model alone
+    click.echo("\n".join(summary_lines(rows, name)))
+    click.echo(f"wrote {len(rows)} clouds{' and pictures' if opts['png'] else ''} to {out}")
+    if failed:
+        click.echo("\n".join([f"{len(failed)} frames failed:", *(f"  FAILED {f}" for f in failed)]))
+        raise SystemExit(EXIT_SOME_FAILED)

@@ -1,0 +1,105 @@
+"""Guards around a ``msdnet-infer`` batch: the output folder, the worker count, killed parents.
+
+- ``check_out``: ``--out`` must not be a file, nor the folder of an input (outputs would land
+  among the inputs and the next run would read them as inputs).
+- ``prepare_out``: create ``--out``, prove it writable with one temporary file (a read-only file
+  system or missing permission is one line naming the folder, before any work), and remove the
+  temporary files a killed run left there (``io.clean_stale_temps``).
+- ``clamp_workers``: no more worker processes than CPU cores (with a warning) or files.
+- ``watch_parent``: a worker process exits as soon as its parent is gone (a SIGKILLed
+  ``msdnet-infer`` leaves no worker running).
+- ``check_model_options``: the model, provider, threshold and step count every front-end
+  (``msdnet-infer``, ``msdnet-node``) checks before any input is read.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import click
+
+from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io.files import clean_stale_temps, temp_name, write_error
+
+PARENT_POLL_S = 0.2  # how often a worker checks that its parent is alive
+
+
+def check_model_options(
+    model_dir: Path, trusted_key: Path | None, provider: str, threshold: float | None, steps: int | None
+) -> Any:
+    """Load the artifact (hashes, signature) and check ``--provider``, ``--threshold`` and
+    ``--steps`` against it; -> the ``Artifact``. Each problem is one ``MsdnetError`` line."""
+    from msdnet.runtime.engine.ddim import timesteps
+    from msdnet.runtime.engine.session import resolve_providers
+    from msdnet.runtime.model.artifact import load_artifact
+
+    artifact = load_artifact(model_dir, trusted_key)  # refuse a bad model before any input
+    resolve_providers(provider)
+    if threshold is not None and not 0.0 < threshold < 1.0:
+        raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
+    try:
+        timesteps(artifact.diffusion, steps)
+    except ValueError as err:
+        raise MsdnetError("--steps", str(err)) from None
+    return artifact
+
+
+def check_out(out: Path, inputs: Sequence[Path]) -> None:
+    """Refuse an ``--out`` that is an existing non-folder, or the folder of any input."""
+    if out.exists() and not out.is_dir():
+        raise MsdnetError(out, "--out exists and is not a folder")
+    target = out.resolve()
+    for item in inputs:
+        folder = item if item.is_dir() else item.parent
+        if folder.resolve() == target:
+            raise MsdnetError(out, f"--out is the folder of input {item}; choose another --out")
+
+
+def prepare_out(out: Path) -> int:
+    """Create ``out``, check it is writable, clean a killed run's temporaries; -> how many."""
+    probe = out / temp_name("write-check")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        os.unlink(probe)
+    except OSError as err:
+        raise write_error(out, err) from None
+    return clean_stale_temps(out)
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (affinity-aware)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def clamp_workers(workers: int, n_jobs: int) -> int:
+    """``workers`` cut to the CPU cores (warning on stderr) and to the number of jobs."""
+    cores = usable_cores()
+    if workers > cores:
+        click.echo(
+            f"warning: --workers {workers} is more than the {cores} CPU cores here; using {cores}",
+            err=True,
+        )
+        workers = cores
+    return max(1, min(workers, n_jobs))
+
+
+def watch_parent(parent_pid: int) -> None:
+    """Start a daemon thread that ends this process when ``parent_pid`` is no longer its parent
+    (the parent died and the process was re-parented)."""
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(3)
+            time.sleep(PARENT_POLL_S)
+
+    threading.Thread(target=watch, name="msdnet-parent-watch", daemon=True).start()

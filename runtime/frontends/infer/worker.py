@@ -1,0 +1,71 @@
+"""The per-file work of ``msdnet-infer``, shared by its local loop, its ``--workers`` processes and
+its Ray actors (runtime/frontends/infer/ray_batch.py), so that every mode writes the same bytes.
+
+``WORKER`` holds the process's Pipeline and options (``pipe``, ``opts``); ``_run_one(src, dst)``
+reads one scan, densifies it, writes it atomically and returns its summary row, never raising.
+``densify(pipe, cloud, opts)`` is the one Pipeline call of every ``msdnet-infer`` mode (files,
+``--dataset``, bags), so the options reach the pipeline the same way in each.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.frontends.infer.guards import watch_parent
+from msdnet.runtime.io.files import read_cloud, write_dense
+from msdnet.runtime.io.layouts import columns_for
+
+WORKER: dict[str, Any] = {}  # per-process pipeline and settings (worker processes, Ray actors)
+
+
+def densify(pipe: Any, cloud: Any, opts: dict[str, Any]) -> Any:
+    """``pipe(cloud, ...)`` with the run's ``steps``, ``threshold``, ``seed`` and ``keep_radar``
+    (off when absent) from ``opts``; -> the pipeline's ``Result``."""
+    return pipe(
+        cloud,
+        steps=opts["steps"],
+        threshold=opts["threshold"],
+        seed=opts["seed"],
+        keep_radar=opts.get("keep_radar", False),
+    )
+
+
+def _init_worker(
+    model: str, provider: str, threads: int | None, opts: dict[str, Any], parent: int, key: str | None
+) -> None:
+    from msdnet.runtime.engine.pipeline import Pipeline
+    from msdnet.runtime.model.artifact import load_artifact
+
+    watch_parent(parent)  # exit when msdnet-infer is killed: no orphaned workers
+    WORKER["pipe"] = Pipeline(load_artifact(model, key), provider=provider, threads=threads)
+    WORKER["opts"] = opts
+
+
+def _run_one(src: str, dst: str) -> dict[str, Any]:
+    """Process one file in this process's pipeline; never raises (errors are reported)."""
+    pipe, opts = WORKER["pipe"], WORKER["opts"]
+    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0, "dropped": 0}
+    try:
+        start = time.perf_counter()
+        cloud = read_cloud(src, columns=columns_for(src, opts.get("bin_columns")))
+        row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
+        res = densify(pipe, cloud, opts)
+        write_dense(dst, res.points, res.confidence, opts["fmt"])
+        if opts["png"]:
+            from msdnet.runtime.io.pictures import render_bev
+
+            layers = [(res.points, "#555555", "MSDNet dense", 0.5), (cloud.xyz, "#d62728", "radar", 6.0)]
+            render_bev(Path(dst).with_suffix(".png"), layers, pipe.artifact.grid, Path(src).name)
+        notes = list(res.notes)
+        if len(cloud) == 0 and cloud.dropped_nonfinite:  # not an "empty scan": every row was bad
+            notes = [f"all {cloud.dropped_nonfinite} rows are NaN/Inf: empty output"]
+        row.update(points_out=len(res.points), notes=notes)
+        row["seconds"] = time.perf_counter() - start
+    except MsdnetError as err:
+        row["error"] = str(err) if err.path else f"{src}: {err}"
+    except Exception as err:  # one bad file must not stop the batch
+        row["error"] = f"{src}: {type(err).__name__}: {' '.join(str(err).split())[:200]}"
+    return row
