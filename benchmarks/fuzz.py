@@ -2,7 +2,7 @@
 
 Readers: ``ply`` (binary and text), ``pcd`` (binary and ASCII), ``npy``, ``bin`` (VoD radar),
 ``txt`` (Astyx radar, header line) and ``msg`` (a CDR-serialized sensor_msgs/PointCloud2 through
-``rosbag_io.message_cloud``, the bag mode's decoder; needs the ``[ros]`` extra). Each case takes
+``io.rosbag.message_cloud``, the bag mode's decoder; needs the ``[ros]`` extra). Each case takes
 one valid input, applies 1-3 mutations drawn from a seeded generator (flip bytes, overwrite a
 run with random or digit bytes, insert, delete or repeat a run, truncate), and reads it. The
 rule: the reader returns a cloud (then written back with ``write_cloud`` and read again) or
@@ -243,7 +243,7 @@ def fuzz_command(
         tallies = run_fuzz(work or Path(tmp), cases, seed, chosen)
     click.echo(report(tallies, cases, seed))
     if json_out is not None:
-        from msdnet.runtime.io.files import atomic_output
+        from msdnet.runtime.io.atomic import atomic_output
 
         body = {
             r: {"read": t.read, "refused": t.refused, "failures": t.failures, "seconds": t.seconds}

@@ -33,7 +33,7 @@ import numpy as np
 
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.frontends.infer.cli import resolve_model
+from msdnet.runtime.frontends.model_args import resolve_model
 
 WARMUP_REPLIES = 10  # the storm's memory baseline starts once this many replies are out
 MEMORY_FLAT_PCT = 5.0  # "memory flat": growth over the storm below this share (as msdnet-bench soak)

@@ -27,8 +27,9 @@ from tqdm import tqdm
 
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.frontends.infer.cli import collect_inputs, resolve_model
-from msdnet.runtime.io.files import atomic_output
+from msdnet.runtime.frontends.infer.files import collect_inputs
+from msdnet.runtime.frontends.model_args import resolve_model
+from msdnet.runtime.io.atomic import atomic_output
 
 
 @dataclass(frozen=True)

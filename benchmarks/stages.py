@@ -70,7 +70,7 @@ def frame_batches(ds: Any, frame_ids: list[str], cfg: Any) -> Iterator[tuple[np.
 
 def write_markdown_and_json(doc: dict[str, Any], markdown: str, out: Path, stem: str) -> None:
     """``out/<stem>.json`` (the doc) and ``out/<stem>.md`` (the page), each written atomically."""
-    from msdnet.runtime.io.files import atomic_output
+    from msdnet.runtime.io.atomic import atomic_output
 
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(out / f"{stem}.json") as tmp:

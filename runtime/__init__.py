@@ -7,6 +7,13 @@ Python API::
     result = pipe(points)  # (N, C) float32 in the manifest's columns, or a PointCloud
     result.points, result.confidence, result.timings
 
+Sub-packages: ``engine`` (voxelizer, rulebooks, sessions, DDIM schedule, decode, the Pipeline),
+``model`` (the exported artifact: manifest, ONNX specs and checks, signing), ``io`` (files,
+layouts, datasets, bags, Rerun, pictures, bag pairing), ``sim`` (the simulator) and
+``frontends`` (``msdnet-infer``, ``msdnet-node``, ``msdnet-data``); ``errors`` holds
+``MsdnetError``. Each imports only those before it (engine and model together form the core),
+which tests/test_import_graph.py checks.
+
 The public names below are imported on first use (PEP 562), so ``import msdnet.runtime`` stays
 cheap for modules that only need the grid or the schedule. Importing it turns onnxruntime's
 telemetry off for the process (``ORT_DISABLE_TELEMETRY=1``, ``ORT_TELEMETRY_DISABLED=1``) unless
@@ -36,6 +43,7 @@ _LAZY = {
     "read_cloud": "msdnet.runtime.io.files",
     "write_cloud": "msdnet.runtime.io.files",
     "MsdnetError": "msdnet.runtime.errors",
+    "files_to_bag": "msdnet.runtime.io.rosbag",  # point-cloud files -> a ROS 2 bag ([ros] extra)
 }
 
 __all__ = sorted(_LAZY)

@@ -10,7 +10,8 @@ from pathlib import Path
 from click.testing import CliRunner
 
 from msdnet.runtime import Pipeline
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
+from msdnet.runtime.frontends.infer.cli import main
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
 from msdnet.runtime.sim.command import simulate_dataset
 
 MODELS = Path(BUNDLED_MODEL).parent

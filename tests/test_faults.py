@@ -23,14 +23,17 @@ from export_helpers import copy_artifact, make_artifact
 from msdnet.runtime import Pipeline, read_cloud
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.frontends.infer import cli as infer_cli
+from msdnet.runtime.frontends.infer import files as file_mode
+from msdnet.runtime.frontends.infer import guards, worker
 from msdnet.runtime.frontends.infer.cli import OUT_COLUMNS, main
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
 from msdnet.runtime.io import files as io
-from msdnet.runtime.io.files import clean_stale_temps, temp_name, write_cloud
+from msdnet.runtime.io.atomic import clean_stale_temps, temp_name
+from msdnet.runtime.io.files import write_cloud
 
 VOD_COLUMNS = ("x", "y", "z", "rcs", "v_r_compensated")
 FAST = ["--steps", "2", "--threads", "1"]
-BUNDLED = infer_cli.BUNDLED_MODEL
+BUNDLED = BUNDLED_MODEL
 
 
 @pytest.fixture(scope="module")
@@ -274,8 +277,8 @@ class _InlinePool:
 
     def __init__(self, workers, ctx, initializer, initargs):
         _InlinePool.seen = {"workers": workers, "initargs": initargs}
-        model, provider, threads, opts, _parent, key = initargs
-        infer_cli._WORKER.update(pipe=Pipeline.from_dir(model, provider, threads), opts=opts)
+        model, provider, threads, options, _parent, key = initargs
+        worker.WORKER.update(pipe=Pipeline.from_dir(model, provider, threads), options=options)
 
     def __enter__(self):
         return self
@@ -290,11 +293,11 @@ class _InlinePool:
 
 
 def test_workers_keep_threads_and_are_clamped_to_cores(model, tmp_path, monkeypatch):
-    monkeypatch.setattr(infer_cli, "ProcessPoolExecutor", _InlinePool)
+    monkeypatch.setattr(file_mode, "ProcessPoolExecutor", _InlinePool)
     scans = [_scan(tmp_path / f"s{i}.ply", seed=i) for i in range(3)]
     r = _infer([*scans, "--model", model, "--out", tmp_path / "a", "--workers", "2", "--threads", "3"])
     assert r.exit_code == 0, r.output
-    cores = infer_cli.usable_cores()
+    cores = guards.usable_cores()
     if cores >= 2:
         assert _InlinePool.seen["workers"] == 2 and _InlinePool.seen["initargs"][2] == 3
     r = CliRunner().invoke(

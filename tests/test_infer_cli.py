@@ -4,7 +4,9 @@ refused with one line."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import pickle
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +17,8 @@ from click.testing import CliRunner
 from export_helpers import copy_artifact, make_artifact
 
 from msdnet.runtime import Pipeline, read_cloud
-from msdnet.runtime.frontends.infer import cli as infer_cli
+from msdnet.runtime.frontends import model_args
+from msdnet.runtime.frontends.densify import DensifyOptions, densify
 from msdnet.runtime.frontends.infer.cli import OUT_COLUMNS, main
 from msdnet.runtime.model import onnx_spec
 
@@ -147,7 +150,7 @@ def test_missing_graph_and_wrong_version(vod_model, vod_scans, tmp_path):
 
 
 def test_no_model_and_none_bundled(vod_scans, tmp_path, monkeypatch):
-    monkeypatch.setattr(infer_cli, "BUNDLED_MODEL", tmp_path / "nowhere")
+    monkeypatch.setattr(model_args, "BUNDLED_MODEL", tmp_path / "nowhere")
     r = _infer([vod_scans[0], "--out", tmp_path / "o"])
     assert r.exit_code == 2 and "no model given and no bundled model" in r.output
 
@@ -160,3 +163,17 @@ def test_console_script_one_line_error(vod_model, vod_scans, tmp_path):
     assert r.returncode == 2, r.stderr
     assert r.stderr.startswith("error: provider: 'tensorrt' is not available")
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_densify_options_are_frozen_picklable_and_reach_the_pipeline(vod_model, vod_scans):
+    """The one options object every mode builds travels to worker processes and Ray actors as a
+    pickle, cannot be changed on the way, and gives densify the same result as the keywords."""
+    options = DensifyOptions(steps=2, seed=3, keep_radar=True, fmt="ply", bin_columns=("x", "y", "z"))
+    assert pickle.loads(pickle.dumps(options)) == options
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        options.seed = 4  # type: ignore[misc]
+    pipe = Pipeline.from_dir(vod_model, threads=1)
+    cloud = read_cloud(vod_scans[0])
+    res = densify(pipe, cloud, options)
+    ref = pipe(cloud, steps=2, threshold=None, seed=3, keep_radar=True)
+    assert np.array_equal(res.points, ref.points) and np.array_equal(res.confidence, ref.confidence)

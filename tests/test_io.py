@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 from msdnet.runtime.engine.pointcloud import PointCloud, canonical_column, concat_clouds
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io import atomic
 from msdnet.runtime.io import files as io
 from msdnet.runtime.io.files import LIDAR_COLUMNS, VOD_RADAR_COLUMNS, read_cloud, write_cloud
 
@@ -180,7 +181,7 @@ def test_write_is_atomic_and_replaces(tmp_path, monkeypatch):
     target = tmp_path / "c.npy"
     first = PointCloud(_rows(4, 3), ("x", "y", "z"))
     write_cloud(target, first)
-    assert target.stat().st_mode & 0o777 == 0o666 & ~io._umask()  # not mkstemp's 0600
+    assert target.stat().st_mode & 0o777 == 0o666 & ~atomic._umask()  # not mkstemp's 0600
 
     def failing_save(*args, **kwargs):
         raise OSError("disk full")

@@ -11,7 +11,8 @@ import pytest
 from click.testing import CliRunner
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
+from msdnet.runtime.frontends.infer.cli import main
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
 from msdnet.runtime.io.files import read_cloud
 from msdnet.runtime.io.layouts import LAYOUTS, layout_for_columns, resolve_bin_columns
 

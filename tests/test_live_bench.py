@@ -10,8 +10,8 @@ import pytest
 pytest.importorskip("cyclonedds")
 
 from msdnet.benchmarks.live import markdown, storm_run  # noqa: E402
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL  # noqa: E402
 from msdnet.runtime.frontends.live.dds import loopback_env  # noqa: E402
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL  # noqa: E402
 
 
 def test_short_storm(vod_root: Path, tmp_path: Path) -> None:

@@ -20,11 +20,11 @@ import pytest
 pytest.importorskip("cyclonedds")
 
 from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL  # noqa: E402
 from msdnet.runtime.frontends.live.dds import loopback_env  # noqa: E402
 from msdnet.runtime.frontends.live.idl import PointCloud2, dds_topic  # noqa: E402
 from msdnet.runtime.frontends.live.messages import cloud_message  # noqa: E402
 from msdnet.runtime.frontends.live.node import LatestSlot, NodeStats  # noqa: E402
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL  # noqa: E402
 from msdnet.runtime.io.files import read_cloud  # noqa: E402
 
 DOMAIN = 30 + os.getpid() % 180  # unique per test process (parallel runs do not meet)

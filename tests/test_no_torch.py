@@ -52,7 +52,7 @@ def test_import_runtime_never_imports_torch():
     )
     r = _python(code)
     assert r.returncode == 0, r.stderr
-    assert int(r.stdout.strip()) >= 10  # pipeline, artifact, session, infer_cli, io, ...
+    assert int(r.stdout.strip()) >= 10  # engine.pipeline, model.artifact, io.files, frontends.infer.cli, ...
 
 
 @pytest.fixture(scope="module")

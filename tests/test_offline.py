@@ -19,7 +19,7 @@ SESSION = """
 import time
 import numpy as np
 from msdnet.runtime import Pipeline
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
 pipe = Pipeline.from_dir(BUNDLED_MODEL, threads=1)
 pipe(np.random.default_rng(0).random((50, 5)).astype(np.float32) * 8, steps=1)
 time.sleep(2.0)  # onnxruntime writes its device id early; give it time

@@ -13,8 +13,9 @@ pytest.importorskip("rosbags")
 
 from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
 from msdnet.runtime.frontends.data.cli import main  # noqa: E402
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL  # noqa: E402
+from msdnet.runtime.frontends.densify import DensifyOptions  # noqa: E402
 from msdnet.runtime.frontends.infer.dataset import run_dataset  # noqa: E402
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL  # noqa: E402
 from msdnet.runtime.io.datasets import VodDataset  # noqa: E402
 from msdnet.runtime.io.datasets.vod import read_kitti_calib  # noqa: E402
 from msdnet.runtime.io.files import read_cloud  # noqa: E402
@@ -23,7 +24,7 @@ from msdnet.runtime.io.rosbag import POINTCLOUD2, make_pointcloud2  # noqa: E402
 
 IDS = ("00549", "01047", "01201")
 T0 = 1_700_000_000 * 10**9
-OPTS = {"steps": None, "threshold": None, "seed": 0, "fmt": "npy", "png": False, "keep_radar": False}
+OPTIONS = DensifyOptions()  # msdnet-infer --dataset vod with its defaults
 
 
 def _transform(types, parent: str, child: str, ns: int, t: np.ndarray):
@@ -79,7 +80,7 @@ def _pair(*args: object):
 @pytest.fixture(scope="module")
 def scored_example(vod_root, tmp_path_factory):
     pipe = Pipeline.from_dir(BUNDLED_MODEL, threads=1)
-    rows, failed = run_dataset(pipe, "vod", vod_root, tmp_path_factory.mktemp("ex"), None, None, OPTS)
+    rows, failed = run_dataset(pipe, "vod", vod_root, tmp_path_factory.mktemp("ex"), None, None, OPTIONS)
     assert not failed
     return pipe, {r.frame: r for r in rows}
 
@@ -95,7 +96,7 @@ def test_pair_scores_as_the_example(vod_root, tmp_path, scored_example) -> None:
     assert paired.frame_ids == ["00000", "00001", "00002"]
     assert (out / "lidar" / "ImageSets" / "val.txt").read_text().split() == ["00002"]
     pipe, example = scored_example
-    rows, failed = run_dataset(pipe, "vod", out, tmp_path / "dense", None, None, OPTS)
+    rows, failed = run_dataset(pipe, "vod", out, tmp_path / "dense", None, None, OPTIONS)
     assert not failed and len(rows) == 3
     ref = VodDataset(vod_root)
     for row, fid in zip(rows, IDS, strict=True):

@@ -19,8 +19,10 @@ from click.testing import CliRunner
 
 from msdnet.runtime import Pipeline, read_cloud
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
-from msdnet.runtime.io.files import MAX_POINTS, VOD_RADAR_COLUMNS, temp_name
+from msdnet.runtime.frontends.infer.cli import main
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
+from msdnet.runtime.io.atomic import temp_name
+from msdnet.runtime.io.files import MAX_POINTS, VOD_RADAR_COLUMNS
 
 RUN = ["--steps", "1", "--threads", "1"]
 TOPIC = "/radar/points"

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from msdnet.runtime.frontends.infer.cli import BUNDLED_MODEL, main
+from msdnet.runtime.frontends.infer.cli import main
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 from msdnet.runtime.io.files import DENSE_COLUMNS, read_cloud

@@ -18,7 +18,8 @@ from export_helpers import make_checkpoint, one_torch_thread
 from msdnet.export.cli import main as export_main
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.frontends.infer.cli import main as infer_main
-from msdnet.runtime.io.files import _umask, write_cloud
+from msdnet.runtime.io.atomic import _umask
+from msdnet.runtime.io.files import write_cloud
 from msdnet.runtime.model.signing import SIGNATURE_FILE, generate_keypair
 
 pytest.importorskip("cryptography")  # extra "sign"; .ci/run installs it, so CI runs these

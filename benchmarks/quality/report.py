@@ -1,6 +1,6 @@
 """Outputs of the evaluation commands: results.json, results.md and BEV picture strips.
 
-Everything is written atomically (``runtime.io.files.atomic_output``: a temporary file in the same
+Everything is written atomically (``runtime.io.atomic.atomic_output``: a temporary file in the same
 folder, then ``os.replace``). Non-finite numbers become JSON ``null`` so results.json stays
 strict JSON; numpy scalars become plain numbers.
 """
@@ -19,7 +19,7 @@ from matplotlib.figure import Figure
 
 from msdnet.benchmarks.quality.columns import FSCORE_KEYS
 from msdnet.runtime.engine.grid import GridConfig
-from msdnet.runtime.io.files import atomic_output
+from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.io.pictures import draw_grid
 
 # MSDNet paper, Table I (VoD) as printed: CD (unit not stated), MHD (printed x1e-2, here in m),

@@ -30,9 +30,10 @@ from msdnet.benchmarks.quality.official import OfficialFrames, official_markdown
 from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.io.datasets import FrameDataset
 from msdnet.runtime.io.datasets.preprocess import crop_mask, preprocess_frame
-from msdnet.runtime.io.files import atomic_output, write_cloud
+from msdnet.runtime.io.files import write_cloud
 
 # summary metrics, in table order: name -> whether lower is better
 METRICS: dict[str, bool] = {

@@ -4,7 +4,7 @@
   by another tool (no ``rosbag2_bagfile_information.storage_identifier``), is one line naming the bag.
 - ``prepare_bag_out``: before any work, the output bag's folder must take a file (a read-only
   place is one line naming the output), and a killed run's temporary bag there is removed
-  (``io.clean_stale_temps``: pid-tagged temp names whose process is gone).
+  (``io.atomic.clean_stale_temps``: pid-tagged temp names whose process is gone).
 - ``bag_write_error``: a failed write (OSError, sqlite3 or rosbags error) as one line naming the
   output: disk full, read-only, or the library's cause.
 """
@@ -15,7 +15,7 @@ import os
 from pathlib import Path
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import clean_stale_temps, temp_name, write_error
+from msdnet.runtime.io.atomic import clean_stale_temps, temp_name, write_error
 
 
 def storage_of(bag: Path) -> str:

@@ -9,13 +9,10 @@ a PLY whose body holds more vertices than its header states. An empty
 ``.bin`` (what a scan with no output point writes) reads back as zero rows when its layout is
 known (``columns=``, ``kind=`` or the path).
 
-Writing is atomic (temporary file in the same folder, then ``os.replace``) and keeps column
-names where the format can (PCD fields, PLY properties); ``.bin`` and plain ``.npy`` store bare
-float32 rows, read back with ``columns=``. Temporary names are ``.msdnet-<pid>-<random>.<name>.tmp``
-cut to 255 bytes (``temp_name``); a run killed mid-write leaves one behind, and
-``clean_stale_temps`` (called by every CLI before it writes into a folder) removes those whose
-process is gone. A failed write raises ``MsdnetError`` naming the output, and says when the
-disk is full.
+Writing is atomic (``io.atomic.atomic_output``: a temporary file in the same folder, then
+``os.replace``) and keeps column names where the format can (PCD fields, PLY properties); ``.bin``
+and plain ``.npy`` store bare float32 rows, read back with ``columns=``. A failed write raises
+``MsdnetError`` naming the output, and says when the disk is full.
 
 Known ``.bin`` layouts (``kind``):
 
@@ -29,14 +26,8 @@ float32, so Astyx LiDAR ``timestamp`` (~3.7e8 us) is rounded to a multiple of 32
 
 from __future__ import annotations
 
-import contextlib
-import errno
-import os
-import re
-import secrets
-import shutil
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +36,7 @@ import pypcd4
 
 from msdnet.runtime.engine.pointcloud import PointCloud, canonical_column
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io.atomic import atomic_output
 
 MAX_POINTS = 5_000_000  # rows per file; larger files are refused before allocating
 VOD_RADAR_COLUMNS = ("x", "y", "z", "rcs", "v_r", "v_r_compensated", "time")
@@ -293,94 +285,6 @@ def _ply_holds_no_more(path: Path, size: int, header: plyfile.PlyData, body_star
         held = (size - body_start - sum(e.count * row[e.name] for e in others)) // row["vertex"]
     if held > count:
         raise MsdnetError(path, f"header states {count} vertices, the body holds {held}")
-
-
-TEMP_PREFIX = ".msdnet-"  # every temporary file or folder msdnet writes starts with this
-_TEMP_RE = re.compile(r"^\.msdnet-(\d+)-[0-9a-f]+\..*\.tmp$")
-MAX_NAME_BYTES = 255  # file name limit of common file systems (ext4, xfs, btrfs, tmpfs)
-
-
-def temp_name(target_name: str, pid: int | None = None) -> str:
-    """``.msdnet-<pid>-<random>.<target_name>.tmp``, the target name cut so the whole name fits
-    in ``MAX_NAME_BYTES`` bytes of UTF-8 (a legal 255-byte target name still gets a legal temp)."""
-    head = f"{TEMP_PREFIX}{os.getpid() if pid is None else pid}-{secrets.token_hex(4)}."
-    room = MAX_NAME_BYTES - len(head.encode()) - len(".tmp")
-    cut = target_name.encode("utf-8")[:room].decode("utf-8", errors="ignore")
-    return f"{head}{cut}.tmp"
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, belongs to someone else
-        return True
-    return True
-
-
-def clean_stale_temps(folder: str | Path) -> int:
-    """Remove msdnet temporary files/folders in ``folder`` whose writing process is gone (a
-    killed run's leftovers); -> how many were removed. Others' live temps are left alone."""
-    removed = 0
-    try:
-        entries = list(Path(folder).iterdir())
-    except OSError:
-        return 0
-    for entry in entries:
-        match = _TEMP_RE.match(entry.name)
-        if not match or _pid_alive(int(match.group(1))):
-            continue
-        with contextlib.suppress(OSError):
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry)
-            else:
-                entry.unlink()
-            removed += 1
-    return removed
-
-
-def write_error(path: str | Path, err: OSError) -> MsdnetError:
-    """A failed write as one line naming ``path``; says so when the disk is full (ENOSPC, a
-    quota, or numpy's short-write message "N requested and M written")."""
-    text = " ".join(str(err).split())
-    if err.errno in (errno.ENOSPC, errno.EDQUOT) or re.search(r"\d+ requested and \d+ written", text):
-        return MsdnetError(path, "cannot write: no space left on the device (disk full)")
-    if err.errno == errno.EROFS:
-        return MsdnetError(path, "cannot write: read-only file system")
-    return MsdnetError(path, f"cannot write: {err.strerror or text or type(err).__name__}")
-
-
-@contextlib.contextmanager
-def atomic_output(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically.
-
-    Any ``OSError`` (disk full, read-only, permissions) becomes one :class:`MsdnetError` naming
-    ``path``; the temporary file is removed."""
-    target = Path(path)
-    tmp = target.parent / temp_name(target.name)
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))  # umask applies
-    except OSError as err:
-        raise write_error(target, err) from None
-    try:
-        yield tmp
-        os.replace(tmp, target)
-    except BaseException as err:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        if isinstance(err, OSError):
-            raise write_error(target, err) from None
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def write_cloud(path: str | Path, cloud: PointCloud, fmt: str | None = None) -> Path:

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from msdnet.runtime.engine.grid import GridConfig
-from msdnet.runtime.io.files import atomic_output
+from msdnet.runtime.io.atomic import atomic_output
 
 # one layer: points (N, >=2) [x, y, ...] radar frame, colour, legend label, marker size (pt^2)
 Layer = tuple[np.ndarray, str, str, float]

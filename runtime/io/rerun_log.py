@@ -12,7 +12,7 @@ stamp):
 
 File and dataset modes log after the run from the written outputs (so ``--workers`` and
 ``--ray`` runs are recorded the same way); the bag mode logs each message as it goes. The file
-is written under a temporary name (``io.temp_name``: pid-tagged, so the next run removes a killed
+is written under a temporary name (``io.atomic.temp_name``: pid-tagged, so the next run removes a killed
 run's) and renamed when complete; a failure drops it. ``check_path`` refuses a path that cannot
 be written (not ``.rrd``, a folder, a read-only place) before any work. Needs ``rerun-sdk``
 (``[rerun]``).
@@ -30,7 +30,8 @@ import numpy as np
 from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import DENSE_COLUMNS, clean_stale_temps, read_cloud, temp_name, write_error
+from msdnet.runtime.io.atomic import clean_stale_temps, temp_name, write_error
+from msdnet.runtime.io.files import DENSE_COLUMNS, read_cloud
 
 RADAR_RGB = (214, 39, 40)
 LIDAR_RGB = (150, 150, 150)

@@ -1,1 +1,7 @@
-"""The model artifact: manifest loading and hashes, the ONNX graph specs and checks, signing."""
+"""The model artifact a ``msdnet-export`` folder holds, as the engine reads it.
+
+- ``artifact``: ``manifest.json`` (grid, columns, schedule, graphs and their hashes) -> ``Artifact``;
+- ``onnx_spec``: the ONNX contract of every graph (tensor names, shapes, dtypes);
+- ``onnx_check``: the external-data check of a graph file, without the ``onnx`` package;
+- ``signing``: Ed25519 signatures of the manifest (``--sign``, ``--trusted-key``).
+"""

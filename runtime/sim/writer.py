@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import atomic_output
+from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.sim import rig
 
 MAX_FRAME_ID = 99_999  # ids are 5 digits

@@ -35,102 +35,28 @@ ROS 2 bag (``runtime/io/rosbag``), ``--ray [ADDRESS]`` runs the files on Ray act
 
 from __future__ import annotations
 
-import multiprocessing
-import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 import click
-from tqdm import tqdm
 
-import msdnet.models
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.frontends.infer.guards import (
-    check_model_options,
-    check_out,
-    clamp_workers,
-    prepare_out,
-    usable_cores,
+from msdnet.runtime.frontends.densify import DensifyOptions
+from msdnet.runtime.frontends.infer.files import (
+    EXIT_SOME_FAILED,
+    collect_inputs,
+    output_paths,
+    pending_jobs,
+    run_files,
+    summary,
 )
-from msdnet.runtime.frontends.infer.worker import WORKER, _init_worker, _run_one
-from msdnet.runtime.io.files import DENSE_COLUMNS, READ_FORMATS, WRITE_FORMATS
+from msdnet.runtime.frontends.infer.guards import check_out, clamp_workers, prepare_out, usable_cores
+from msdnet.runtime.frontends.model_args import check_model_options, resolve_model
+from msdnet.runtime.io.files import DENSE_COLUMNS, WRITE_FORMATS
 from msdnet.runtime.io.layouts import LAYOUTS, resolve_bin_columns
 
-BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
-EXIT_SOME_FAILED = 1
-
-_WORKER = WORKER  # per-process pipeline and settings (runtime/frontends/infer/worker)
-
-
-def resolve_model(model: Path | None) -> Path:
-    """--model, or the bundled model; MsdnetError when neither exists."""
-    if model is not None:
-        return model
-    if (BUNDLED_MODEL / "manifest.json").is_file():
-        return BUNDLED_MODEL
-    raise MsdnetError(
-        "--model",
-        f"no model given and no bundled model at {BUNDLED_MODEL}; "
-        "pass --model DIR (a folder written by msdnet-export)",
-    )
-
-
-def collect_inputs(inputs: tuple[Path, ...]) -> list[Path]:
-    """Files as given, folders expanded to the readable files directly inside them (sorted)."""
-    files: list[Path] = []
-    for item in inputs:
-        if item.is_dir():
-            found = sorted(p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS)
-            if not found:
-                raise MsdnetError(item, f"folder holds no point-cloud file ({' '.join(READ_FORMATS)})")
-            files += found
-        elif item.exists():
-            files.append(item)
-        else:
-            raise MsdnetError(item, "no such file or folder")
-    return files
-
-
-def output_paths(files: list[Path], out: Path, fmt: str) -> list[Path]:
-    """``OUT/<stem>.<fmt>`` per input; MsdnetError on a name clash or an output equal to an input."""
-    targets = [out / f"{f.stem}.{fmt}" for f in files]
-    seen: dict[Path, Path] = {}
-    resolved_inputs = {f.resolve() for f in files}
-    for src, dst in zip(files, targets, strict=True):
-        if dst.resolve() in resolved_inputs:
-            raise MsdnetError(dst, "output path equals an input path; choose another --out")
-        if dst in seen:
-            raise MsdnetError(dst, f"inputs {seen[dst]} and {src} would write the same output")
-        seen[dst] = src
-    return targets
-
-
-def _summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple[str, int]:
-    failed = [r for r in rows if "error" in r]
-    ok = len(rows) - len(failed)
-    p_in = sum(r["points_in"] for r in rows if "error" not in r)
-    p_out = sum(r["points_out"] for r in rows if "error" not in r)
-    dropped = [r for r in rows if r.get("dropped")]
-    per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
-    skip = f", {skipped} skipped (output exists)" if skipped else ""
-    drop = f" ({sum(r['dropped'] for r in dropped)} NaN/Inf rows dropped)" if dropped else ""
-    lines = [
-        f"files: {ok} ok, {len(failed)} failed{skip}; points in {p_in}{drop}, out {p_out}; "
-        f"time {wall:.2f} s{per}"
-    ]
-    lines += [
-        f"  dropped: {r['file']}: {r['dropped']} rows with NaN/Inf (or beyond float32)" for r in dropped
-    ]
-    lines += [
-        f"  {'note' if r['points_out'] else 'empty'}: {r['file']}: {'; '.join(r['notes'])}"
-        for r in rows
-        if r.get("notes")
-    ]
-    lines += [f"  FAILED {r['error']}" for r in failed]
-    return "\n".join(lines), (EXIT_SOME_FAILED if failed else 0)
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -232,9 +158,16 @@ def main(
 
     model_dir = resolve_model(model)
     artifact = check_model_options(model_dir, trusted_key, provider, threshold, steps)
-    opts = {"steps": steps, "threshold": threshold, "seed": seed, "fmt": fmt, "png": png}
-    opts["keep_radar"] = keep_radar  # also reaches --workers processes (_init_worker) and --dataset
-    opts["bin_columns"], _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
+    columns, _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
+    options = DensifyOptions(  # the one set of options every mode (and every worker) runs with
+        steps=steps,
+        threshold=threshold,
+        seed=seed,
+        keep_radar=keep_radar,
+        fmt=fmt,
+        png=png,
+        bin_columns=columns,
+    )
     if rerun is not None:
         from msdnet.runtime.io.rerun_log import check_path
 
@@ -244,12 +177,12 @@ def main(
             raise MsdnetError(
                 "--topic", "one bag, one process: not with --dataset/--ray/--png/--skip-existing/--workers"
             )
-        from msdnet.runtime.io.rosbag import bag_mode
+        from msdnet.runtime.frontends.infer.bag import bag_mode
 
         _announce_auto(artifact, provider, threads, verbose)
         start = time.perf_counter()
-        rows = bag_mode(artifact, provider, threads, inputs, out, topic, fields, bag_storage, rerun, opts)
-        text, code = _summary(rows, time.perf_counter() - start)
+        rows = bag_mode(artifact, provider, threads, inputs, out, topic, fields, bag_storage, rerun, options)
+        text, code = summary(rows, time.perf_counter() - start)
         click.echo(text.replace("files:", "messages:", 1).replace(" s/file", " s/message"))
         raise SystemExit(code)
     if fields or bag_storage:
@@ -265,7 +198,7 @@ def main(
         if skip_existing:
             raise MsdnetError("--skip-existing", "only applies to file mode, not --dataset")
         _announce_auto(artifact, provider, threads, verbose)
-        _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, opts)
+        _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, options)
         if rerun is not None:
             from msdnet.runtime.io.rerun_log import log_dataset
 
@@ -277,50 +210,29 @@ def main(
     targets = output_paths(files, out, fmt)
     prepare_out(out)  # writable, and a killed run's temporary files removed
     start = time.perf_counter()
-    jobs = [(str(s), str(d)) for s, d in zip(files, targets, strict=True)]
-    skipped = 0
-    if skip_existing:
-        done = [Path(d).is_file() and (not png or Path(d).with_suffix(".png").is_file()) for _, d in jobs]
-        jobs, skipped = [j for j, d in zip(jobs, done, strict=True) if not d], sum(done)
+    jobs, skipped = pending_jobs(files, targets, skip_existing, png)
     workers = clamp_workers(workers, len(jobs))
     if threads is None and workers > 1:
         threads = max(1, usable_cores() // workers)  # outputs do not depend on it
     auto_pipe = _announce_auto(artifact, provider, threads, verbose)  # workers then read its cache
-    bar = tqdm(total=len(jobs), unit="file", desc="msdnet-infer", disable=None)
-    rows: list[dict[str, Any]] = []
-    if ray_address is not None:
-        from msdnet.runtime.frontends.infer.ray_batch import run_ray
-
-        rows = run_ray(ray_address, artifact, provider, threads, jobs, opts, bar, ray_timeout)
-    elif workers == 1:
-        from msdnet.runtime.engine.pipeline import Pipeline
-
-        pipe = auto_pipe or Pipeline(artifact, provider=provider, threads=threads)
-        _WORKER.update(pipe=pipe, opts=opts)
-        for job in jobs:
-            rows.append(_run_one(*job))
-            bar.update()
-    else:
-        ctx = multiprocessing.get_context("spawn")  # no onnxruntime/numba threads across fork
-        key = None if trusted_key is None else str(trusted_key)
-        initargs = (str(model_dir), provider, threads, opts, os.getpid(), key)
-        with ProcessPoolExecutor(workers, ctx, _init_worker, initargs) as pool:
-            futures = {pool.submit(_run_one, *job): job for job in jobs}
-            for fut in as_completed(futures):
-                try:
-                    rows.append(fut.result())
-                except Exception as err:  # a worker died (killed, out of memory) or failed to start
-                    cause = " ".join(str(err).split())[:200] or type(err).__name__
-                    rows.append({"file": futures[fut][0], "error": f"{futures[fut][0]}: worker: {cause}"})
-                bar.update()
-        order = {src: i for i, (src, _) in enumerate(jobs)}
-        rows.sort(key=lambda r: order[r["file"]])
-    bar.close()
+    rows = run_files(
+        artifact,
+        model_dir,
+        provider,
+        threads,
+        jobs,
+        options,
+        workers,
+        trusted_key,
+        auto_pipe=auto_pipe,
+        ray_address=ray_address,
+        ray_timeout=ray_timeout,
+    )
     if rerun is not None:
         from msdnet.runtime.io.rerun_log import log_files
 
         log_files(rerun, jobs, rows)
-    text, code = _summary(rows, time.perf_counter() - start, skipped)
+    text, code = summary(rows, time.perf_counter() - start, skipped)
     click.echo(text)
     if code:
         raise SystemExit(code)
@@ -348,7 +260,7 @@ def _dataset_mode(
     out: Path,
     split: str | None,
     max_frames: int | None,
-    opts: dict[str, Any],
+    options: DensifyOptions,
 ) -> None:
     from msdnet.runtime.engine.pipeline import Pipeline
     from msdnet.runtime.frontends.infer.dataset import run_dataset, summary_lines
@@ -357,12 +269,12 @@ def _dataset_mode(
         raise MsdnetError(" ".join(map(str, inputs)), "--dataset takes exactly one dataset folder")
     prepare_out(out)  # writable, and a killed run's temporary files removed
     pipe = Pipeline(artifact, provider=provider, threads=threads)
-    rows, failed = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, opts)
+    rows, failed = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, options)
     name = "R2LDM" if artifact.kind == "r2ldm" else "MSDNet"
-    if opts["keep_radar"]:
+    if options.keep_radar:
         name += "+radar"  # the scored output is the union (--keep-radar), not the model alone
     click.echo("\n".join(summary_lines(rows, name)))
-    click.echo(f"wrote {len(rows)} clouds{' and pictures' if opts['png'] else ''} to {out}")
+    click.echo(f"wrote {len(rows)} clouds{' and pictures' if options.png else ''} to {out}")
     if failed:
         click.echo("\n".join([f"{len(failed)} frames failed:", *(f"  FAILED {f}" for f in failed)]))
         raise SystemExit(EXIT_SOME_FAILED)

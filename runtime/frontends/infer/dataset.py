@@ -6,7 +6,7 @@ frame is scored against its LiDAR sweep the way ``msdnet-bench quality`` scores 
 cropped to the grid box and the radar's field of view with its ground removed, the radar and the
 dense cloud cropped the same way (``benchmarks.quality.suite.crop_to_grid``). The summary says how much
 denser and how much closer to the LiDAR the output is than the radar, and
-``OUT/comparison.json`` keeps every frame's figures. With ``opts["keep_radar"]`` (``--keep-radar``)
+``OUT/comparison.json`` keeps every frame's figures. With ``options.keep_radar`` (``--keep-radar``)
 the output, and so every "dense" figure, is the model's points plus the radar points in the grid;
 ``comparison.json`` then says ``"keep_radar": true``.
 
@@ -29,10 +29,11 @@ from tqdm import tqdm
 from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.frontends.infer.worker import densify
+from msdnet.runtime.frontends.densify import DensifyOptions, densify
+from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
-from msdnet.runtime.io.files import DENSE_COLUMNS, atomic_output, write_dense
+from msdnet.runtime.io.files import DENSE_COLUMNS, write_dense
 
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 FSCORE_AT = 0.5  # metres: the F-score threshold quoted in the summary
@@ -110,7 +111,7 @@ def run_dataset(
     out: Path,
     split: str | None,
     max_frames: int | None,
-    opts: dict[str, Any],
+    options: DensifyOptions,
 ) -> tuple[list[FrameComparison], list[str]]:
     """Densify every frame of ``root`` (``split``, first ``max_frames``), write clouds, compare;
     -> (scored frames, one ``"<frame>: <cause>"`` line per frame that failed)."""
@@ -122,7 +123,7 @@ def run_dataset(
     failed: list[str] = []
     for fid in tqdm(ids, unit="frame", desc="msdnet-infer", disable=None):
         try:
-            rows.append(_run_frame(pipe, ds, dataset, fid, out, opts))
+            rows.append(_run_frame(pipe, ds, dataset, fid, out, options))
         except MsdnetError as err:  # one bad frame must not stop the run
             failed.append(f"{fid}: {err}")
         except Exception as err:
@@ -133,24 +134,24 @@ def run_dataset(
         body: dict[str, Any] = {"summary": summarize(rows), "frames": [asdict(r) for r in rows]}
         if failed:
             body["failed"] = failed
-        if opts.get("keep_radar"):
+        if options.keep_radar:
             body["keep_radar"] = True  # dense_* figures score model points + radar points
         Path(tmp).write_text(json.dumps(body, indent=1, allow_nan=True) + "\n")
     return rows, failed
 
 
 def _run_frame(
-    pipe: Pipeline, ds: Any, dataset: str, fid: str, out: Path, opts: dict[str, Any]
+    pipe: Pipeline, ds: Any, dataset: str, fid: str, out: Path, options: DensifyOptions
 ) -> FrameComparison:
     """Load, densify, write and score one frame."""
     grid = pipe.artifact.grid
     frame = preprocess_frame(ds.load(fid), grid)
     start = time.perf_counter()
-    res = densify(pipe, frame.radar, opts)
+    res = densify(pipe, frame.radar, options)
     seconds = time.perf_counter() - start
-    dst = out / f"{fid}.{opts['fmt']}"
-    write_dense(dst, res.points, res.confidence, opts["fmt"])
-    if opts["png"]:
+    dst = out / f"{fid}.{options.fmt}"
+    write_dense(dst, res.points, res.confidence, options.fmt)
+    if options.png:
         from msdnet.runtime.io.pictures import render_bev
 
         layers = [

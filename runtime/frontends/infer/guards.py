@@ -4,12 +4,13 @@
   among the inputs and the next run would read them as inputs).
 - ``prepare_out``: create ``--out``, prove it writable with one temporary file (a read-only file
   system or missing permission is one line naming the folder, before any work), and remove the
-  temporary files a killed run left there (``io.clean_stale_temps``).
+  temporary files a killed run left there (``io.atomic.clean_stale_temps``).
 - ``clamp_workers``: no more worker processes than CPU cores (with a warning) or files.
 - ``watch_parent``: a worker process exits as soon as its parent is gone (a SIGKILLed
   ``msdnet-infer`` leaves no worker running).
-- ``check_model_options``: the model, provider, threshold and step count every front-end
-  (``msdnet-infer``, ``msdnet-node``) checks before any input is read.
+
+The model and the options checked against it: ``frontends/model_args`` (shared with
+``msdnet-node``).
 """
 
 from __future__ import annotations
@@ -19,34 +20,13 @@ import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import click
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import clean_stale_temps, temp_name, write_error
+from msdnet.runtime.io.atomic import clean_stale_temps, temp_name, write_error
 
 PARENT_POLL_S = 0.2  # how often a worker checks that its parent is alive
-
-
-def check_model_options(
-    model_dir: Path, trusted_key: Path | None, provider: str, threshold: float | None, steps: int | None
-) -> Any:
-    """Load the artifact (hashes, signature) and check ``--provider``, ``--threshold`` and
-    ``--steps`` against it; -> the ``Artifact``. Each problem is one ``MsdnetError`` line."""
-    from msdnet.runtime.engine.ddim import timesteps
-    from msdnet.runtime.engine.session import resolve_providers
-    from msdnet.runtime.model.artifact import load_artifact
-
-    artifact = load_artifact(model_dir, trusted_key)  # refuse a bad model before any input
-    resolve_providers(provider)
-    if threshold is not None and not 0.0 < threshold < 1.0:
-        raise MsdnetError("--threshold", f"must be in (0, 1), got {threshold}")
-    try:
-        timesteps(artifact.diffusion, steps)
-    except ValueError as err:
-        raise MsdnetError("--steps", str(err)) from None
-    return artifact
 
 
 def check_out(out: Path, inputs: Sequence[Path]) -> None:

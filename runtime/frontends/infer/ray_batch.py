@@ -4,7 +4,7 @@ Ray Data (``[ray]`` extra) turns the (input, output) pairs into a dataset of one
 (one block per file) and runs ``map_batches`` with a pool of actors: each actor builds ONE
 :class:`~msdnet.runtime.engine.pipeline.Pipeline` with ``threads`` intra-op threads (``--threads``,
 default 1 under ``--ray``; the actor reserves that many CPUs) and runs the file mode's own
-per-file function (``infer_worker._run_one``: read, densify, atomic write), so the bytes equal a
+per-file function (``worker._run_one``: read, densify, atomic write), so the bytes equal a
 local run at the same thread count and the rows are the ones the local summary counts. The
 model's verified bytes travel to the actors with the task, so only the input and output paths
 have to be visible to every node (a shared file system), and msdnet must be installed there.
@@ -30,7 +30,7 @@ seconds (``--ray-timeout``, default 30) in one line naming it, instead of Ray's 
 A worker that dies is not retried (actor restarts and task retries are off): the run stops, every
 file without a result is reported as failed ("no result, the Ray run stopped (ActorDiedError..."),
 and the temporary file a killed writer leaves next to its output is removed
-(``io.clean_stale_temps``), so OUT holds whole files only (``--skip-existing`` resumes).
+(``io.atomic.clean_stale_temps``), so OUT holds whole files only (``--skip-existing`` resumes).
 """
 
 from __future__ import annotations
@@ -51,7 +51,8 @@ from typing import Any
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import clean_stale_temps
+from msdnet.runtime.frontends.densify import DensifyOptions
+from msdnet.runtime.io.atomic import clean_stale_temps
 
 DEFAULT_THREADS = 1  # intra-op threads per actor when --threads is not given
 DEFAULT_TIMEOUT_S = 30.0  # --ray-timeout: how long an ADDRESS may take to answer
@@ -65,12 +66,12 @@ LOCAL_PROVIDER = "# msdnet: a local Ray instance (no cloud to ask about)\nprovid
 class _InferActor:
     """One Pipeline per actor; ``__call__`` runs a batch of (src, dst) rows through ``_run_one``."""
 
-    def __init__(self, artifact: Any, provider: str, threads: int, opts: dict[str, Any]) -> None:
+    def __init__(self, artifact: Any, provider: str, threads: int, options: DensifyOptions) -> None:
         from msdnet.runtime.engine.pipeline import Pipeline
-        from msdnet.runtime.frontends.infer import worker as infer_worker
+        from msdnet.runtime.frontends.infer import worker
 
-        infer_worker.WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), opts=opts)
-        self._run = infer_worker._run_one
+        worker.WORKER.update(pipe=Pipeline(artifact, provider=provider, threads=threads), options=options)
+        self._run = worker._run_one
 
     def __call__(self, batch: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         rows = [self._run(str(s), str(d)) for s, d in zip(batch["src"], batch["dst"], strict=True)]
@@ -219,14 +220,14 @@ def run_ray(
     provider: str,
     threads: int | None,
     jobs: Sequence[tuple[str, str]],
-    opts: dict[str, Any],
+    options: DensifyOptions,
     bar: Any = None,
     timeout: float = DEFAULT_TIMEOUT_S,
 ) -> list[dict[str, Any]]:
-    """Run every (src, dst) job on Ray actors; -> rows in job order (as ``infer_worker._run_one``).
+    """Run every (src, dst) job on Ray actors; -> rows in job order (as ``worker._run_one``).
     ``timeout``: seconds ``address`` may take to answer (not used for ``local``)."""
     with _connected(address, timeout):
-        return _run(artifact, provider, threads, jobs, opts, bar)
+        return _run(artifact, provider, threads, jobs, options, bar)
 
 
 def _run(
@@ -234,7 +235,7 @@ def _run(
     provider: str,
     threads: int | None,
     jobs: Sequence[tuple[str, str]],
-    opts: dict[str, Any],
+    options: DensifyOptions,
     bar: Any,
 ) -> list[dict[str, Any]]:
     import ray
@@ -256,7 +257,7 @@ def _run(
             _InferActor,
             batch_size=1,
             compute=ray.data.ActorPoolStrategy(min_size=1, max_size=actors),
-            fn_constructor_args=(artifact, provider, threads, opts),
+            fn_constructor_args=(artifact, provider, threads, options),
             num_cpus=threads,
             max_restarts=0,
             max_task_retries=0,

@@ -1,10 +1,10 @@
 """The per-file work of ``msdnet-infer``, shared by its local loop, its ``--workers`` processes and
-its Ray actors (runtime/frontends/infer/ray_batch.py), so that every mode writes the same bytes.
+its Ray actors (``frontends/infer/ray_batch``), so that every mode writes the same bytes.
 
-``WORKER`` holds the process's Pipeline and options (``pipe``, ``opts``); ``_run_one(src, dst)``
-reads one scan, densifies it, writes it atomically and returns its summary row, never raising.
-``densify(pipe, cloud, opts)`` is the one Pipeline call of every ``msdnet-infer`` mode (files,
-``--dataset``, bags), so the options reach the pipeline the same way in each.
+``WORKER`` holds the process's Pipeline and options (``pipe``: the Pipeline, ``options``: the
+run's :class:`~msdnet.runtime.frontends.densify.DensifyOptions`); ``_run_one(src, dst)`` reads
+one scan, densifies it (``frontends.densify.densify``, the one Pipeline call of every mode),
+writes it atomically and returns its summary row, never raising.
 """
 
 from __future__ import annotations
@@ -14,47 +14,36 @@ from pathlib import Path
 from typing import Any
 
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.frontends.densify import DensifyOptions, densify
 from msdnet.runtime.frontends.infer.guards import watch_parent
 from msdnet.runtime.io.files import read_cloud, write_dense
 from msdnet.runtime.io.layouts import columns_for
 
-WORKER: dict[str, Any] = {}  # per-process pipeline and settings (worker processes, Ray actors)
-
-
-def densify(pipe: Any, cloud: Any, opts: dict[str, Any]) -> Any:
-    """``pipe(cloud, ...)`` with the run's ``steps``, ``threshold``, ``seed`` and ``keep_radar``
-    (off when absent) from ``opts``; -> the pipeline's ``Result``."""
-    return pipe(
-        cloud,
-        steps=opts["steps"],
-        threshold=opts["threshold"],
-        seed=opts["seed"],
-        keep_radar=opts.get("keep_radar", False),
-    )
+WORKER: dict[str, Any] = {}  # per-process pipeline and options (worker processes, Ray actors)
 
 
 def _init_worker(
-    model: str, provider: str, threads: int | None, opts: dict[str, Any], parent: int, key: str | None
+    model: str, provider: str, threads: int | None, options: DensifyOptions, parent: int, key: str | None
 ) -> None:
     from msdnet.runtime.engine.pipeline import Pipeline
     from msdnet.runtime.model.artifact import load_artifact
 
     watch_parent(parent)  # exit when msdnet-infer is killed: no orphaned workers
     WORKER["pipe"] = Pipeline(load_artifact(model, key), provider=provider, threads=threads)
-    WORKER["opts"] = opts
+    WORKER["options"] = options
 
 
 def _run_one(src: str, dst: str) -> dict[str, Any]:
     """Process one file in this process's pipeline; never raises (errors are reported)."""
-    pipe, opts = WORKER["pipe"], WORKER["opts"]
+    pipe, options = WORKER["pipe"], WORKER["options"]
     row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0, "dropped": 0}
     try:
         start = time.perf_counter()
-        cloud = read_cloud(src, columns=columns_for(src, opts.get("bin_columns")))
+        cloud = read_cloud(src, columns=columns_for(src, options.bin_columns))
         row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
-        res = densify(pipe, cloud, opts)
-        write_dense(dst, res.points, res.confidence, opts["fmt"])
-        if opts["png"]:
+        res = densify(pipe, cloud, options)
+        write_dense(dst, res.points, res.confidence, options.fmt)
+        if options.png:
             from msdnet.runtime.io.pictures import render_bev
 
             layers = [(res.points, "#555555", "MSDNet dense", 0.5), (cloud.xyz, "#d62728", "radar", 6.0)]

@@ -75,11 +75,11 @@ def main(
 ) -> None:
     """Densify a ROS 2 radar PointCloud2 topic live, over DDS (no ROS install)."""
     from msdnet.runtime.engine.pipeline import Pipeline
-    from msdnet.runtime.frontends.infer.cli import resolve_model
-    from msdnet.runtime.frontends.infer.guards import check_model_options
+    from msdnet.runtime.frontends.densify import DensifyOptions
     from msdnet.runtime.frontends.live.dds import check_domain, cyclonedds
     from msdnet.runtime.frontends.live.idl import dds_topic
     from msdnet.runtime.frontends.live.node import NodeConfig, serve, write_stats
+    from msdnet.runtime.frontends.model_args import check_model_options, resolve_model
     from msdnet.runtime.io.rosbag import parse_field_map
 
     cyclonedds()  # the missing-extra line before anything else
@@ -89,7 +89,8 @@ def main(
     parse_field_map(fields, artifact.inputs.columns)
     if stats_json is not None and stats_json.is_dir():
         raise MsdnetError(stats_json, "is a folder; --stats-json takes a file path")
-    cfg = NodeConfig(topic, domain_id, fields, steps, threshold, seed, keep_radar, stats_every, stats_json)
+    options = DensifyOptions(steps=steps, threshold=threshold, seed=seed, keep_radar=keep_radar)
+    cfg = NodeConfig(topic, domain_id, fields, options, stats_every, stats_json)
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: Any) -> None:

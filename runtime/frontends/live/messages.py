@@ -1,10 +1,10 @@
 """PointCloud2 IDL messages <-> arrays, through the bag mode's code (``runtime/io/rosbag``).
 
-``rosbag_io`` reads a PointCloud2 by field name (``--field`` overrides) and writes the dense
+``io.rosbag`` reads a PointCloud2 by field name (``--field`` overrides) and writes the dense
 output (float32 ``x y z confidence``, point_step 16, little-endian, height 1); the same functions
-serve the live node: :data:`IDL_STORE` makes ``rosbag_io.make_pointcloud2`` build the IDL structs
+serve the live node: :data:`IDL_STORE` makes ``io.rosbag.make_pointcloud2`` build the IDL structs
 of :mod:`msdnet.runtime.frontends.live.idl`, and :func:`message_cloud` feeds them to
-``rosbag_io.pointcloud2_to_array``.
+``io.rosbag.pointcloud2_to_array``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from msdnet.runtime.io.rosbag import POINTCLOUD2, make_pointcloud2, pointcloud2_
 
 
 def _pointcloud2(*args: Any) -> PointCloud2:
-    """``rosbag_io``'s positional PointCloud2 arguments, ``data`` (a uint8 array) as bytes."""
+    """``io.rosbag``'s positional PointCloud2 arguments, ``data`` (a uint8 array) as bytes."""
     values = list(args)
     values[7] = np.ascontiguousarray(values[7], dtype=np.uint8).tobytes()
     return PointCloud2(*values)

@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import atomic_output
+from msdnet.runtime.frontends.densify import DensifyOptions, densify
+from msdnet.runtime.io.atomic import atomic_output
 
 LATENCY_WINDOW = 100_000  # latencies kept for the percentiles (bounded memory)
 POLL_S = 0.05  # how often both threads look at the stop flag (SIGTERM -> exit well within 1 s)
@@ -37,10 +38,7 @@ class NodeConfig:
     topic: str  # ROS 2 topic of the radar PointCloud2, e.g. /radar/points (DDS rt/radar/points)
     domain_id: int = 0  # DDS domain id: the ROS_DOMAIN_ID of the ROS 2 system
     fields: tuple[str, ...] = ()  # --field model_column=msg_field overrides (as the bag mode)
-    steps: int | None = None  # DDIM steps; None: the manifest's T_m
-    threshold: float | None = None  # occupancy threshold; None: the manifest's
-    seed: int = 0  # noise seed: same seed, same output as file mode
-    keep_radar: bool = False  # append the input radar points in the grid (confidence 1)
+    options: DensifyOptions = DensifyOptions()  # steps, threshold, seed, keep_radar: as file mode
     stats_every: int = 0  # print a stats line every N handled messages; 0: only at exit
     stats_json: Path | None = None  # also write the final stats here as JSON (atomic), if set
 
@@ -191,9 +189,7 @@ def serve(
         label = f"message {index} (stamp {sec}.{nsec:09d}, frame {sample.header.frame_id!r})"
         try:
             cloud = message_cloud(sample, pipe.columns, mapping, label)
-            res = pipe(
-                cloud, steps=cfg.steps, threshold=cfg.threshold, seed=cfg.seed, keep_radar=cfg.keep_radar
-            )
+            res = densify(pipe, cloud, cfg.options)
             writer.write(dense_message(res.points, res.confidence, sample.header))
             with stats.lock:
                 stats.published += 1

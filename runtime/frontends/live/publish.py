@@ -28,7 +28,8 @@ from msdnet.runtime.frontends.live.dds import Endpoints
 from msdnet.runtime.frontends.live.idl import dds_topic
 from msdnet.runtime.frontends.live.messages import cloud_message, message_array, stamp_of
 from msdnet.runtime.frontends.live.node import DENSE_SUFFIX
-from msdnet.runtime.io.files import atomic_output, read_cloud
+from msdnet.runtime.io.atomic import atomic_output
+from msdnet.runtime.io.files import read_cloud
 
 START_NS = 1_700_000_000 * 10**9  # header stamp of message 0
 MATCH_TIMEOUT_S = 20.0  # how long to wait for a subscriber before giving up

@@ -32,8 +32,9 @@ from tqdm import tqdm
 
 from msdnet.runtime.engine.pointcloud import canonical_column
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io.atomic import temp_name
 from msdnet.runtime.io.datasets.frame import split_contiguous
-from msdnet.runtime.io.files import LIDAR_COLUMNS, VOD_RADAR_COLUMNS, temp_name
+from msdnet.runtime.io.files import LIDAR_COLUMNS, VOD_RADAR_COLUMNS
 from msdnet.runtime.io.pairing.transforms import TfTree, matrix, stamp_ns
 from msdnet.runtime.io.rosbag import (
     POINTCLOUD2,
