@@ -1,5 +1,8 @@
 """runtime/ has no import circles: no module imports, directly or through others, a module that
-imports it back (module-level, function-level and TYPE_CHECKING imports all count)."""
+imports it back (module-level, function-level and TYPE_CHECKING imports all count). And its
+sub-packages keep their order: ``errors`` <- the core (``engine``, ``model``: the Pipeline reads
+the artifact, the artifact reads the engine's grid and schedule) <- ``io`` <- ``sim`` <-
+``frontends``; nothing imports a front-end but another front-end."""
 
 from __future__ import annotations
 
@@ -7,6 +10,15 @@ import ast
 from pathlib import Path
 
 RUNTIME = Path(__file__).resolve().parents[1] / "runtime"
+# sub-package -> the sub-packages its modules may import (besides its own)
+MAY_IMPORT = {
+    "errors": set(),
+    "engine": {"errors", "model"},
+    "model": {"errors", "engine"},
+    "io": {"errors", "engine", "model"},
+    "sim": {"errors", "engine", "model", "io"},
+    "frontends": {"errors", "engine", "model", "io", "sim"},
+}
 
 
 def _modules() -> dict[str, Path]:
@@ -76,3 +88,24 @@ def test_runtime_has_no_import_circles():
 def test_the_check_sees_a_circle():
     graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
     assert _cycles(graph) == [["a", "b", "c"]]
+
+
+def _part(module: str) -> str:
+    """``msdnet.runtime.io.datasets.vod`` -> ``io``; the package itself -> ``""``."""
+    return (module.split(".") + [""])[2]
+
+
+def test_runtime_is_in_its_sub_packages():
+    loose = [m for m in _modules() if _part(m) not in MAY_IMPORT and m != "msdnet.runtime"]
+    assert loose == [], f"runtime modules outside the sub-packages {sorted(MAY_IMPORT)}: {loose}"
+
+
+def test_sub_packages_import_only_those_below():
+    graph = _graph(_modules())
+    wrong = sorted(
+        f"{a} -> {b}"
+        for a, targets in graph.items()
+        for b in targets
+        if _part(a) in MAY_IMPORT and _part(b) != _part(a) and _part(b) not in MAY_IMPORT[_part(a)]
+    )
+    assert wrong == []
