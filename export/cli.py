@@ -21,10 +21,10 @@ from typing import TYPE_CHECKING, Any
 import click
 import numpy as np
 
-from msdnet.runtime.artifact import MANIFEST
-from msdnet.runtime.datasets import DATASET_NAMES
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.io import clean_stale_temps, temp_name
+from msdnet.runtime.io.atomic import clean_stale_temps, temp_name
+from msdnet.runtime.io.datasets import DATASET_NAMES
+from msdnet.runtime.model.artifact import MANIFEST
 from msdnet.training.config import MODEL_PRESETS, ModelConfig
 
 if TYPE_CHECKING:
@@ -43,7 +43,7 @@ def verification_frames(
 
         frames = [tracing_points(cfg, n=300, seed=100 + i) for i in range(count)]
         return frames, f"{count} random frames (no --data)"
-    from msdnet.runtime.datasets import open_dataset
+    from msdnet.runtime.io.datasets import open_dataset
 
     if dataset is None:
         raise MsdnetError("--dataset", "needed with --data (astyx, vod or sim)")
@@ -146,7 +146,7 @@ def export_model(
     check_out(out)
     key = None
     if sign_key is not None:
-        from msdnet.runtime.signing import load_private_key
+        from msdnet.runtime.model.signing import load_private_key
 
         key = load_private_key(sign_key)  # a bad key fails before any work
     try:
@@ -169,7 +169,7 @@ def export_model(
             manifest["verification"] = report.to_dict()
             write_manifest(tmp, manifest)
         if key is not None:
-            from msdnet.runtime.signing import sign_folder
+            from msdnet.runtime.model.signing import sign_folder
 
             sign_folder(tmp, key, MANIFEST)
         _fsync_folder(tmp)
@@ -238,7 +238,7 @@ def main(
         raise MsdnetError("--calibrate", "needs --data and --dataset (its training frames are used)")
     check_out(out)
     if sign_key is not None:
-        from msdnet.runtime.signing import load_private_key
+        from msdnet.runtime.model.signing import load_private_key
 
         load_private_key(sign_key)  # a bad key is refused before the export starts
     model, cfg, state = load_for_export(checkpoint)

@@ -25,10 +25,10 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.artifact import MANIFEST, file_digest, load_artifact
+from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import MANIFEST, file_digest, load_artifact
 
 RECALL = 0.99  # share of the dense head's points the shipped gate keeps on the calibration frames
 

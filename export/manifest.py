@@ -30,11 +30,11 @@ from typing import Any
 import onnx
 import onnxruntime
 
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
-from msdnet.runtime.cosine_logsnr import SamplerSettings
-from msdnet.runtime.ddim import DiffusionConfig, alphas_cumprod
-from msdnet.runtime.layouts import layout_for_columns
+from msdnet.runtime.engine.cosine_logsnr import SamplerSettings
+from msdnet.runtime.engine.ddim import DiffusionConfig, alphas_cumprod
+from msdnet.runtime.io.layouts import layout_for_columns
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
 from msdnet.training.checkpoint import versions as checkpoint_versions
 from msdnet.training.config import ModelConfig
 from msdnet.training.models import bev_shape

@@ -24,10 +24,10 @@ import torch
 from torch import nn
 
 from msdnet.export.graphs import encoder_tensors, graph_modules
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.decode import decode_occupancy
-from msdnet.runtime.grid import GridConfig
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.engine.decode import decode_occupancy
+from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.model import onnx_spec
 from msdnet.training.batch import make_encoder_input
 from msdnet.training.config import ModelConfig
 

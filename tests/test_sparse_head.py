@@ -13,11 +13,11 @@ from export_helpers import make_artifact, one_torch_thread, tiny_config
 
 from msdnet.export.gate import calibrate_gate, keep_all_gate
 from msdnet.export.manifest import write_manifest
-from msdnet.runtime.artifact import load_artifact
-from msdnet.runtime.decode import decode_packed, decode_sparse, packed_shape
+from msdnet.runtime.engine.decode import decode_packed, decode_sparse, packed_shape
+from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.grid import GRID_PRESETS, GridConfig
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.model.artifact import load_artifact
 from msdnet.training.head import ReconHead
 from msdnet.training.head_sparse import build_head
 from msdnet.training.models import bev_shape

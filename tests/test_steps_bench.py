@@ -81,7 +81,7 @@ def test_select_split_scores_the_runs_held_out_slice(folder, vod_root, tmp_path)
     read from ``--checkpoint``; without one, from the manifest's source, which must exist."""
     from export_helpers import tiny_config
 
-    from msdnet.runtime.datasets import open_dataset
+    from msdnet.runtime.io.datasets import open_dataset
     from msdnet.training.checkpoint import CheckpointState, save_checkpoint
     from msdnet.training.config import TrainConfig
     from msdnet.training.models import build_model

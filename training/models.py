@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call
 
-from msdnet.runtime.ddim import alphas_cumprod, step_coefficients
+from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
 from msdnet.training.batch import Batch, EncoderInput
 from msdnet.training.config import ModelConfig
 from msdnet.training.encoder import SparseEncoder, level_shapes

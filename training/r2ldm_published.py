@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.cosine_logsnr import sampler_plan
-from msdnet.runtime.rulebook import level_shapes
+from msdnet.runtime.engine.cosine_logsnr import sampler_plan
+from msdnet.runtime.engine.rulebook import level_shapes
 from msdnet.training.batch import Batch, EncoderInput
 from msdnet.training.config import ModelConfig
 from msdnet.training.head_sparse import build_head

@@ -18,9 +18,9 @@ from tqdm import tqdm
 
 from msdnet.benchmarks.metrics import FrameScores, score_frame
 from msdnet.benchmarks.quality.suite import crop_to_grid, pick_frames, summarize, xy_range
-from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import PointCloud
+from msdnet.runtime.errors import MsdnetError
 
 
 def load_frames(
