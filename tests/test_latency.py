@@ -22,10 +22,10 @@ from msdnet.benchmarks.latency.timing import (
     plain_run,
     synthetic_radar,
 )
-from msdnet.runtime import onnx_spec
-from msdnet.runtime.artifact import load_artifact
+from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.pipeline import Pipeline
+from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.model.artifact import load_artifact
 
 RATIOS = (
     "msdnet_over_r2ldm",
@@ -206,3 +206,15 @@ def test_quick_run_times_the_sparse_head_and_the_peers(quick):
     assert _finite(res["ratios"]["engine_over_best_peer"])
     md = (out / "results.md").read_text(encoding="utf-8")
     assert "Peer engines per stage" in md and "Coarse-to-fine head vs the dense head" in md
+
+
+def test_random_models_take_the_head_and_loop_steps_asked_for(tmp_path):
+    from msdnet.benchmarks.latency.suite import LatencyConfig, _models
+
+    pair = _models(LatencyConfig(out=tmp_path, preset="tiny", head="dense", loop_steps=3), tmp_path / "a")
+    assert pair.cfg.head_kind == "dense" and pair.cfg.diffusion.sample_steps == 3
+    assert load_artifact(pair.msdnet.folder).diffusion.sample_steps == 3
+    assert _models(LatencyConfig(out=tmp_path, preset="tiny"), tmp_path / "b").cfg.head_kind == "sparse"
+    given = LatencyConfig(out=tmp_path, model=pair.msdnet.folder, head="sparse")
+    with pytest.raises(MsdnetError, match="random models"):
+        _models(given, tmp_path / "c")

@@ -7,8 +7,8 @@ from pathlib import Path
 import click
 
 from msdnet.benchmarks.eval_cli import int_tuple
-from msdnet.runtime.datasets import DATASET_NAMES
 from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.io.datasets import DATASET_NAMES
 
 
 @click.command("latency", context_settings={"help_option_names": ["-h", "--help"]})
@@ -20,6 +20,7 @@ from msdnet.runtime.errors import one_line_errors
 @click.option(
     "--head", type=click.Choice(["dense", "sparse"]), help="Recon head of random models [preset: sparse]."
 )
+@click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
 @click.option("--provider", default="cpu", show_default=True, help="cpu, auto, openvino, cuda or tensorrt.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
@@ -55,6 +56,7 @@ def latency_command(
     preset: str | None,
     model: Path | None,
     head: str | None,
+    loop_steps: int | None,
     r2ldm: Path | None,
     provider: str,
     threads: int | None,
@@ -75,13 +77,14 @@ def latency_command(
 ) -> None:
     """Per-stage latency, Tables III and IV, ratios and scaling; writes results.json/.md + plots."""
     from msdnet.benchmarks.latency.suite import LatencyConfig, quick_config, run_latency
-    from msdnet.runtime.session import resolve_providers
+    from msdnet.runtime.engine.session import resolve_providers
 
     resolve_providers(provider)
     given = {
         "preset": preset,
         "model": model,
         "head": head,
+        "loop_steps": loop_steps,
         "r2ldm": r2ldm,
         "provider": provider,
         "threads": threads,

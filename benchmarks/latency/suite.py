@@ -45,8 +45,8 @@ from msdnet.benchmarks.latency.timing import (
     voxelize_figures,
 )
 from msdnet.benchmarks.machine import machine_info
+from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.pipeline import Pipeline
 
 TABLE3_STEPS = (3, 10, 50, 100)  # MSDNet Table III
 GRAPH_STAGES = ("encoder", "rgfd_adapter", "ddim_loop", "recon_head")  # what torch eager also runs
@@ -60,6 +60,7 @@ class LatencyConfig:
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
     head: str | None = None  # random models: "dense" or "sparse" recon head [the preset's: sparse]
+    loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
     provider: str = "cpu"  # provider short name (runtime.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
@@ -96,9 +97,13 @@ def _models(cfg: LatencyConfig, scratch: Path) -> ModelPair:
         if cfg.r2ldm is not None:
             raise MsdnetError("--r2ldm", "only used with --model")
         base = preset_config(cfg.preset or "lite")
-        return random_pair(base if cfg.head is None else replace(base, head_kind=cfg.head), scratch, cfg.seed)
-    if cfg.head is not None:
-        raise MsdnetError("--head", "chooses the head of random models: not with --model")
+        if cfg.head is not None:
+            base = replace(base, head_kind=cfg.head)
+        if cfg.loop_steps is not None:
+            base = replace(base, diffusion=replace(base.diffusion, sample_steps=cfg.loop_steps))
+        return random_pair(base, scratch, cfg.seed)
+    if cfg.head is not None or cfg.loop_steps is not None:
+        raise MsdnetError("--head", "--head and --loop-steps set up random models: not with --model")
     pair = given_pair(cfg.model, cfg.r2ldm, scratch, cfg.seed)
     if cfg.preset is not None and cfg.preset != pair.cfg.preset:
         raise MsdnetError("--preset", f"{cfg.preset} differs from the model's preset {pair.cfg.preset}")
