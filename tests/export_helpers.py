@@ -52,15 +52,15 @@ def make_checkpoint(folder: Path, kind: str, dataset: str = "vod", seed: int = 0
     return folder
 
 
-def make_artifact(root: Path, kind: str, dataset: str = "vod") -> Path:
+def make_artifact(root: Path, kind: str, dataset: str = "vod", head_kind: str = "dense") -> Path:
     """An exported tiny artifact (no verification), built once per process; ``root`` is a
     session-scoped temporary folder."""
-    key = (kind, dataset)
+    key = (kind, dataset, head_kind)
     if key not in _CACHE:
         torch.manual_seed(0)
-        cfg = tiny_config(dataset)
+        cfg = dataclasses.replace(tiny_config(dataset), head_kind=head_kind)
         model = build_model(kind, cfg).eval()
-        folder = root / f"artifact-{kind}-{dataset}"
+        folder = root / f"artifact-{kind}-{dataset}-{head_kind}"
         folder.mkdir(parents=True)
         with one_torch_thread():
             params, _ = export_all(model, kind, cfg, folder)

@@ -211,10 +211,10 @@ def test_quick_run_times_the_sparse_head_and_the_peers(quick):
 def test_random_models_take_the_head_and_loop_steps_asked_for(tmp_path):
     from msdnet.benchmarks.latency.suite import LatencyConfig, _models
 
-    pair = _models(LatencyConfig(out=tmp_path, preset="tiny", head="dense", loop_steps=3), tmp_path / "a")
-    assert pair.cfg.head_kind == "dense" and pair.cfg.diffusion.sample_steps == 3
+    pair = _models(LatencyConfig(out=tmp_path, preset="tiny", head="sparse", loop_steps=3), tmp_path / "a")
+    assert pair.cfg.head_kind == "sparse" and pair.cfg.diffusion.sample_steps == 3
     assert load_artifact(pair.msdnet.folder).diffusion.sample_steps == 3
-    assert _models(LatencyConfig(out=tmp_path, preset="tiny"), tmp_path / "b").cfg.head_kind == "sparse"
+    assert _models(LatencyConfig(out=tmp_path, preset="tiny"), tmp_path / "b").cfg.head_kind == "dense"
     given = LatencyConfig(out=tmp_path, model=pair.msdnet.folder, head="sparse")
     with pytest.raises(MsdnetError, match="random models"):
         _models(given, tmp_path / "c")

@@ -94,9 +94,11 @@ def test_sparse_decoder_equals_packed_decoder(grid: GridConfig) -> None:
         decode_sparse(rows_occ[:2], rows_off[:1], every[:2], grid, 0.5)
 
 
-@pytest.fixture(scope="module")
-def sparse_pipe(tmp_path_factory: pytest.TempPathFactory) -> Pipeline:
-    return Pipeline.from_dir(make_artifact(tmp_path_factory.mktemp("sparse"), "student"), threads=1)
+@pytest.fixture(scope="module", params=["dense", "sparse"])
+def sparse_pipe(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Pipeline:
+    """The coarse-to-fine graph of either head kind (ReconHead.sparse, SparseReconHead.sparse)."""
+    folder = make_artifact(tmp_path_factory.mktemp("sparse"), "student", head_kind=request.param)
+    return Pipeline.from_dir(folder, threads=1)
 
 
 def _scan(pipe: Pipeline, n: int = 200) -> np.ndarray:

@@ -267,7 +267,7 @@ def _plan(
 )
 @click.option("--denoiser-hidden", type=int, default=None, help="Student: light denoiser width [32].")
 @click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
-@click.option("--head", "head_kind", default=None, help="Recon head: dense | sparse [preset: sparse].")
+@click.option("--head", "head_kind", default=None, help="Recon head: dense | sparse [dense].")
 @click.option(
     "--head-only", is_flag=True, help="Teacher: train only the head (encoder and S2D as --init left them)."
 )

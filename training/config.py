@@ -67,8 +67,9 @@ class ModelConfig:
     denoiser_hidden: int = 32  # light denoiser bottleneck width (1x1 -> 3x3 -> 1x1)
     time_embed_dim: int = 64  # sinusoidal time embedding width
     head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
-    # recon head: "dense" (3x3x3 convs and volume GroupNorms down to 1/2; models before 2026-12-02)
-    # or "sparse" (only 1/8 mixes neighbours, per-voxel below: runs on occupied voxels; head_sparse.py)
+    # recon head: "dense" (3x3x3 convs and volume GroupNorms down to 1/2: the shipped models) or
+    # "sparse" (only 1/8 and 1/4 mix neighbours, per voxel below: runs on occupied voxels only;
+    # head_sparse.py). Sparse cost 10 % CD on sim held-out frames (docs/training.md): not the default
     head_kind: str = "dense"
     # sparse head only: widths at 1/4 and 1/2 (1/8 and the full scale keep head_channels[0], [2]);
     # wider than the dense head's, since below 1/4 a voxel sees only its parent (head_sparse.py)
@@ -202,7 +203,7 @@ STUDENT_DIFFUSION = DiffusionConfig(start_step=100)
 
 
 def _preset(name: str, **kw: object) -> ModelConfig:
-    base = ModelConfig(preset=name, grid=GRID_PRESETS[name], diffusion=STUDENT_DIFFUSION, head_kind="sparse")
+    base = ModelConfig(preset=name, grid=GRID_PRESETS[name], diffusion=STUDENT_DIFFUSION)
     return replace(base, **kw)  # type: ignore[arg-type]
 
 

@@ -59,7 +59,7 @@ class LatencyConfig:
     out: Path  # folder for results.json, results.md and the plots
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
-    head: str | None = None  # random models: "dense" or "sparse" recon head [the preset's: sparse]
+    head: str | None = None  # random models: "dense" or "sparse" recon head [the preset's: dense]
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
     provider: str = "cpu"  # provider short name (runtime.session: cpu, auto, openvino, cuda, tensorrt)
