@@ -5,7 +5,7 @@ complete (and, with ``--verify``, only when verification passes), so ``--out`` i
 the previous artifact or the new one. Exit 1 when verification fails, 2 on bad input.
 Folders and files get the usual permissions (0777 / 0666 minus the umask). A killed export
 leaves its temporary folder behind; the next export into the same parent folder removes it.
-``--sign KEY`` (an ed25519 private key, PEM) writes ``manifest.sig`` (``runtime/signing``), which
+``--sign KEY`` (an ed25519 private key, PEM) writes ``manifest.sig`` (``runtime/model/signing``), which
 ``msdnet-infer --trusted-key`` checks. The checkpoint is checked first: its preset name must be
 known and ``model.safetensors`` must load (a corrupt file is one line, whatever its hash says).
 """

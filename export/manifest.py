@@ -1,6 +1,6 @@
 """``manifest.json`` of an artifact folder: everything the runtime needs besides the graphs.
 
-Keys (read back by :mod:`msdnet.runtime.artifact`):
+Keys (read back by :mod:`msdnet.runtime.model.artifact`):
 
 - ``format_version``: ``onnx_spec.FORMAT_VERSION``; ``model_kind``: ``student`` | ``r2ldm``;
 - ``config``: the full ``ModelConfig`` (``dataclasses.asdict``);
@@ -12,7 +12,7 @@ Keys (read back by :mod:`msdnet.runtime.artifact`):
   occupancy gate (``null``: not calibrated, the runtime decodes with the dense head);
 - ``input``: point ``columns`` in order, the per-column ``normalisation`` (shift, scale; applied
   inside ``encoder.onnx``, so the runtime feeds raw voxel means), ``max_voxels`` and ``layout``
-  (the ``.bin`` layout of the training data, ``runtime/layouts``; ``msdnet-infer``'s default);
+  (the ``.bin`` layout of the training data, ``runtime/io/layouts``; ``msdnet-infer``'s default);
 - ``bev_shape``: (1, C, H, W) of every BEV map; ``opset``; ``versions`` (torch, onnx, ...);
 - ``parameters``: per graph and in total;
 - ``graphs``: per graph file: name, bytes, sha256, input and output names (the optional
@@ -52,7 +52,7 @@ def runtime_diffusion(cfg: ModelConfig, kind: str) -> DiffusionConfig:
 
 def published_sampler(cfg: ModelConfig, kind: str) -> dict[str, Any] | None:
     """The ``sampler`` block of R2LDM as published (its resampled cosine log-SNR DDIM loop,
-    runtime/cosine_logsnr.py); None for every other model."""
+    runtime/engine/cosine_logsnr.py); None for every other model."""
     if kind != "r2ldm" or cfg.r2ldm_recipe != "published":
         return None
     p = cfg.published

@@ -17,7 +17,7 @@ metres [dx, dy, dz])`` at full scale.
 The student and R2LDM hold the trained teacher as a frozen submodule (``requires_grad=False``,
 always in eval mode), so their checkpoints carry it and ``parameters()`` with
 ``requires_grad`` lists only their own weights. The diffusion schedule comes from
-``msdnet.runtime.ddim`` (alphas_cumprod, step_coefficients); nothing is recomputed here.
+``msdnet.runtime.engine.ddim`` (alphas_cumprod, step_coefficients); nothing is recomputed here.
 """
 
 from __future__ import annotations
