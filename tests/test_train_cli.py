@@ -241,7 +241,8 @@ def test_new_head_on_a_trained_encoder_then_students_keep_their_weights(astyx_ro
     s_old, s_new = tmp_path / "s_old", tmp_path / "s_new"
     _train(["student", *one, "--head", "dense", "--teacher", str(dense / "best"), "--out", str(s_old)])
     _train(
-        ["student", *one, "--lr", "1e-9", "--teacher", str(sparse / "best"), "--init", str(s_old / "best")]
+        ["student", *one, "--lr", "1e-9", "--head", "sparse", "--teacher", str(sparse / "best")]
+        + ["--init", str(s_old / "best")]
         + ["--out", str(s_new)]
     )
     old, new = (
