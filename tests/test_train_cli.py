@@ -252,5 +252,10 @@ def test_new_head_on_a_trained_encoder_then_students_keep_their_weights(astyx_ro
     own = [k for k in old if not k.startswith("teacher.") and old[k].is_floating_point()]
     assert own and max((new[k] - old[k]).abs().max().item() for k in own) < 1e-3  # taken from --init
     assert all(torch.equal(new[k], sb[k[len("teacher.") :]]) for k in new if k.startswith("teacher."))
+    r = CliRunner().invoke(
+        main,
+        ["student", *one, "--head", "sparse", "--init", str(s_old / "best")] + ["--out", str(tmp_path / "y")],
+    )
+    assert r.exit_code == 2 and "needs --teacher" in r.output
     r = CliRunner().invoke(main, ["student", *one, "--head-only", "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "--head-only" in r.output

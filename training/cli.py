@@ -478,6 +478,8 @@ def _init_model(path: Path, kind: str, cfg: ModelConfig, teacher: torch.nn.Modul
     differs = config_diff(icfg, cfg, ignore=("head_kind",))
     if differs:
         raise MsdnetError(folder, f"--init config differs from this run: {', '.join(differs)}"[:300])
+    if kind != "teacher" and teacher is None and icfg.head_kind != cfg.head_kind:
+        raise MsdnetError(folder, f"the head is the teacher's: --head {cfg.head_kind} needs --teacher")
     old = load_checkpoint(folder)[0]
     if teacher is None and icfg.head_kind == cfg.head_kind:
         return old
