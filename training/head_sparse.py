@@ -1,4 +1,4 @@
-"""A reconstruction head that stays sparse below its coarsest level (``ModelConfig.head_kind``
+"""A reconstruction head that stays sparse below its 1/4 level (``ModelConfig.head_kind``
 "sparse"): the same contract as :class:`~msdnet.training.head.ReconHead` (multi-scale logits and
 offsets for Eq. 5-7, the packed full scale of ``recon_head.onnx``, the coarse-to-fine
 ``recon_head_sparse.onnx``), but only the 1/8 and 1/4 levels (small volumes) mix neighbours.
@@ -93,7 +93,7 @@ class DepthwiseBlock(nn.Module):
 
 
 class SparseReconHead(nn.Module):
-    """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1; per voxel below 1/8."""
+    """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1; per voxel below 1/4."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__()
