@@ -60,21 +60,19 @@ class Up2x(nn.Module):
         return depth_to_space3d(self.proj(x), self.cout)
 
 
-class ReconHead(nn.Module):
-    """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1."""
+def rows(conv: nn.Conv3d, x: Tensor) -> Tensor:
+    """A 1x1x1 conv on rows: x (N, cin) -> (N, cout) (ungrouped convs only)."""
+    return x @ conv.weight.reshape(conv.out_channels, -1).t() + conv.bias
 
-    def __init__(self, cfg: ModelConfig) -> None:
-        super().__init__()
-        c4, c2, c1 = cfg.head_channels
-        self.d8 = level_shapes(cfg.grid)[-1][0]
-        self.c4 = c4
+
+class HeadOutputs(nn.Module):
+    """What every reconstruction head shares after its trunk: the occupancy / offset branches at
+    1/4 and 1/2 (Eq. 3-4), the per-child full-scale layers ``up1`` / ``full`` and the crops, in
+    the dense layout, the packed layout (``recon_head.onnx``) and on rows (``recon_head_sparse.onnx``)."""
+
+    def _add_outputs(self, cfg: ModelConfig, c4: int, c2: int, c1: int) -> None:
+        """Create the output layers (after the trunk's, so seeded initialisation keeps its order)."""
         self.shapes = scale_shapes(cfg.grid)  # (D, H, W) per scale 1/4, 1/2, 1
-        self.lift = nn.Conv2d(cfg.bev_channels, c4 * self.d8, 1)
-        self.conv8 = conv3d_norm_relu(c4)
-        self.up4 = Up2x(c4, c4)
-        self.post4 = nn.Sequential(group_norm(c4), nn.ReLU(), conv3d_norm_relu(c4))
-        self.up2 = Up2x(c4, c2)
-        self.post2 = nn.Sequential(group_norm(c2), nn.ReLU(), conv3d_norm_relu(c2))
         self.up1 = nn.Conv3d(c2, 8 * c1, 1)  # per half-scale voxel: its 8 children's c1 features
         self.full = nn.Conv3d(8 * c1, 8 * 4, 1, groups=8)  # per child: [logit, dx, dy, dz]
         self.occ = nn.ModuleList([nn.Conv3d(c, 1, 1) for c in (c4, c2)])
@@ -103,6 +101,47 @@ class ReconHead(nn.Module):
         y = self._crop(depth_to_space3d(self.full(torch.relu(self.up1(x2))), 4), 2)  # (B, 4, D, H, W)
         return y[:, :1], torch.tanh(y[:, 1:]) * self.half_size_2
 
+    def _packed_children(self, x2: Tensor) -> tuple[Tensor, Tensor]:
+        """x2 (B, c2, D2, H2, W2) -> (occupancy (B, 8, D2, H2, W2), offsets (B, 8, 3, D2, H2, W2)),
+        axis 1 the child ``(dz * 2 + dy) * 2 + dx`` (the ``packed`` layout)."""
+        y = self.full(torch.relu(self.up1(x2)))  # (B, 8 * 4, D2, H2, W2)
+        b, _, d2, h2, w2 = y.shape
+        y = y.reshape(b, 8, 4, d2, h2, w2)  # (B, child, [logit, dx, dy, dz], D2, H2, W2)
+        half = self.half_size_2.reshape(1, 1, 3, 1, 1, 1)
+        return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half
+
+    def _row_children(self, feats: Tensor) -> tuple[Tensor, Tensor]:
+        """feats (N, c2) of N half-scale voxels -> (occupancy (N, 8), offsets (N, 8, 3)): one
+        matmul to the 8 children's c1 features, ReLU, one block-diagonal matmul to each child's
+        [logit, dx, dy, dz] (the weights of ``up1`` / ``full``)."""
+        h = torch.relu(rows(self.up1, feats))  # (N, 8 * c1)
+        y = (h @ self._full_block().t() + self.full.bias).reshape(-1, 8, 4)  # (N, child, 4)
+        half = self.half_size_2.reshape(1, 1, 3)
+        return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half
+
+    def _full_block(self) -> Tensor:
+        """The grouped 1x1x1 ``full`` conv as one block-diagonal (8 * 4, 8 * c1) matrix."""
+        w = self.full.weight.reshape(8, 4, 1, -1)  # (group = child, out, 1, c1)
+        eye = torch.eye(8, dtype=w.dtype, device=w.device).reshape(8, 1, 8, 1)
+        return (w * eye).reshape(32, -1)  # row child * 4 + out, column child' * c1 + c
+
+
+class ReconHead(HeadOutputs):
+    """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        c4, c2, c1 = cfg.head_channels
+        self.d8 = level_shapes(cfg.grid)[-1][0]
+        self.c4 = c4
+        self.lift = nn.Conv2d(cfg.bev_channels, c4 * self.d8, 1)
+        self.conv8 = conv3d_norm_relu(c4)
+        self.up4 = Up2x(c4, c4)
+        self.post4 = nn.Sequential(group_norm(c4), nn.ReLU(), conv3d_norm_relu(c4))
+        self.up2 = Up2x(c4, c2)
+        self.post2 = nn.Sequential(group_norm(c2), nn.ReLU(), conv3d_norm_relu(c2))
+        self._add_outputs(cfg, c4, c2, c1)
+
     def _trunk(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """F^D (B, C, H8, W8) -> volumes at 1/4 (c4) and 1/2 (c2)."""
         b, _, h8, w8 = features.shape
@@ -124,11 +163,7 @@ class ReconHead(nn.Module):
         axis 1 the child ``(dz * 2 + dy) * 2 + dx`` of half-scale voxel [z2, y2, x2], i.e. full-scale
         voxel [2 z2 + dz, 2 y2 + dy, 2 x2 + dx]. The runtime decoder reads this layout directly,
         saving a full-resolution transpose (400 ms on the paper grid)."""
-        y = self.full(torch.relu(self.up1(self._trunk(features)[1])))  # (B, 8 * 4, D2, H2, W2)
-        b, _, d2, h2, w2 = y.shape
-        y = y.reshape(b, 8, 4, d2, h2, w2)  # (B, child, [logit, dx, dy, dz], D2, H2, W2)
-        half = self.half_size_2.reshape(1, 1, 3, 1, 1, 1)
-        return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half
+        return self._packed_children(self._trunk(features)[1])
 
     def sparse(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Coarse-to-fine inference (``recon_head_sparse.onnx``), batch 1: the trunk to the half
@@ -146,19 +181,8 @@ class ReconHead(nn.Module):
         c2 = x2.shape[1]
         half_occ = torch.sigmoid(self.occ[1](x2)).reshape(-1)  # (D2 * H2 * W2,)
         voxels = torch.nonzero(half_occ > gate).reshape(-1)  # (N,) the rulebook of kept voxels
-        feats = x2.reshape(c2, -1).index_select(1, voxels).t()  # (N, c2)
-        w1 = self.up1.weight.reshape(self.up1.out_channels, c2)  # (8 * c1, c2)
-        h = torch.relu(feats @ w1.t() + self.up1.bias)  # (N, 8 * c1)
-        y = h @ self._full_block().t() + self.full.bias  # (N, 8 * 4)
-        y = y.reshape(-1, 8, 4)  # (N, child, [logit, dx, dy, dz])
-        half = self.half_size_2.reshape(1, 1, 3)
-        return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half, voxels, half_occ[voxels]
-
-    def _full_block(self) -> Tensor:
-        """The grouped 1x1x1 ``full`` conv as one block-diagonal (8 * 4, 8 * c1) matrix."""
-        w = self.full.weight.reshape(8, 4, 1, -1)  # (group = child, out, 1, c1)
-        eye = torch.eye(8, dtype=w.dtype, device=w.device).reshape(8, 1, 8, 1)
-        return (w * eye).reshape(32, -1)  # row child * 4 + out, column child' * c1 + c
+        occ, off = self._row_children(x2.reshape(c2, -1).index_select(1, voxels).t())  # from (N, c2)
+        return occ, off, voxels, half_occ[voxels]
 
     def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """Inference, full scale only, in the dense layout: F^D (B, C, H8, W8) ->

@@ -22,16 +22,13 @@ the smaller of the two and ``export.gate`` calibrates it unchanged.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor, nn
 
 from msdnet.training.config import ModelConfig
 from msdnet.training.encoder import level_shapes
-from msdnet.training.head import ReconHead, Up2x, conv3d_norm_relu, depth_to_space3d
+from msdnet.training.head import HeadOutputs, ReconHead, Up2x, conv3d_norm_relu, rows
 from msdnet.training.nn.blocks import group_norm
-from msdnet.training.targets import SCALE_FACTORS, scale_shapes
 
 # child (dz * 2 + dy) * 2 + dx of a voxel -> its (dz, dy, dx), the depth_to_space3d order
 CHILD_DZ, CHILD_DY, CHILD_DX = ([c >> s & 1 for c in range(8)] for s in (2, 1, 0))
@@ -68,11 +65,6 @@ class VoxelMLP(nn.Module):
         return torch.relu(self.norm_out(x))
 
 
-def rows(conv: nn.Conv3d, x: Tensor) -> Tensor:
-    """A 1x1x1 conv on rows: x (N, cin) -> (N, cout) (ungrouped convs only)."""
-    return x @ conv.weight.reshape(conv.out_channels, -1).t() + conv.bias
-
-
 class DepthwiseBlock(nn.Module):
     """GroupNorm -> ReLU -> depthwise 3x3x3 conv -> 1x1x1 conv -> GroupNorm -> ReLU, width kept
     (the 1/4 level's spatial mixing at ~1/14 of a full 3x3x3 conv's cost)."""
@@ -92,7 +84,7 @@ class DepthwiseBlock(nn.Module):
         return self.body(x)
 
 
-class SparseReconHead(nn.Module):
+class SparseReconHead(HeadOutputs):
     """BEV features -> occupancy and offsets at scales 1/4, 1/2, 1; per voxel below 1/4."""
 
     def __init__(self, cfg: ModelConfig) -> None:
@@ -101,7 +93,6 @@ class SparseReconHead(nn.Module):
         c4, c2 = cfg.head_sparse_widths
         self.d8 = level_shapes(cfg.grid)[-1][0]
         self.c8, self.c4, self.c2 = c8, c4, c2
-        self.shapes = scale_shapes(cfg.grid)  # (D, H, W) per scale 1/4, 1/2, 1
         self.lift = nn.Conv2d(cfg.bev_channels, c8 * self.d8, 1)
         self.conv8 = conv3d_norm_relu(c8)
         self.conv8b = conv3d_norm_relu(c8)
@@ -110,24 +101,9 @@ class SparseReconHead(nn.Module):
         self.post4 = DepthwiseBlock(c4)
         self.up2 = Up2x(c4, c2)
         self.post2 = nn.Sequential(VoxelMLP(c2), VoxelMLP(c2))
-        self.up1 = nn.Conv3d(c2, 8 * c1, 1)  # per half-scale voxel: its 8 children's c1 features
-        self.full = nn.Conv3d(8 * c1, 8 * 4, 1, groups=8)  # per child: [logit, dx, dy, dz]
-        self.occ = nn.ModuleList([nn.Conv3d(c, 1, 1) for c in (c4, c2)])
-        self.off = nn.ModuleList([nn.Conv3d(c, 3, 1) for c in (c4, c2)])
-        prior = math.log(cfg.occupancy_prior / (1.0 - cfg.occupancy_prior))
-        for conv in self.occ:
-            nn.init.constant_(conv.bias, prior)  # start at the typical occupancy, not at 0.5
-        with torch.no_grad():
-            self.full.bias.reshape(8, 4)[:, 0] = prior
-        half = torch.tensor(cfg.grid.voxel_size, dtype=torch.float32) / 2.0  # [vx, vy, vz] / 2
-        for s, k in enumerate(SCALE_FACTORS):
-            self.register_buffer(f"half_size_{s}", (half * k).reshape(1, 3, 1, 1, 1), persistent=False)
+        self._add_outputs(cfg, c4, c2, c1)
         for name, v in (("child_dz", CHILD_DZ), ("child_dy", CHILD_DY), ("child_dx", CHILD_DX)):
             self.register_buffer(name, torch.tensor(v, dtype=torch.int64).reshape(1, 8), persistent=False)
-
-    def _crop(self, x: Tensor, s: int) -> Tensor:
-        d, h, w = self.shapes[s]
-        return x[:, :, :d, :h, :w]
 
     def _quarter(self, features: Tensor) -> Tensor:
         """F^D (B, C, H8, W8) -> the 1/4 volume (B, c4, D4, H4, W4) (dense: it is small)."""
@@ -136,21 +112,6 @@ class SparseReconHead(nn.Module):
         x = self.conv8(torch.relu(x))  # (B, c8, D8, H8, W8)
         x = x + self.conv8b(x)
         return self.post4(self._crop(self.up4(x), 0))
-
-    def _branches(self, x: Tensor, s: int) -> tuple[Tensor, Tensor]:
-        """x (B, c, D, H, W) at scale s (1/4 or 1/2) -> (logits (B, 1, D, H, W), offsets (B, 3, ...))."""
-        half = getattr(self, f"half_size_{s}")
-        return self.occ[s](x), torch.tanh(self.off[s](x)) * half
-
-    def _children(self, x2: Tensor) -> Tensor:
-        """Half-scale features (..., c2) rows or (B, c2, D2, H2, W2) -> children's [logit, dx, dy, dz]
-        before tanh: (N, 8 * 4) rows, or (B, 8 * 4, D2, H2, W2)."""
-        if x2.dim() == 5:
-            return self.full(torch.relu(self.up1(x2)))
-        h = torch.relu(rows(self.up1, x2))  # (N, 8 * c1)
-        w = self.full.weight.reshape(8, 4, 1, -1)  # (group = child, out, 1, c1)
-        eye = torch.eye(8, dtype=w.dtype, device=w.device).reshape(8, 1, 8, 1)
-        return h @ (w * eye).reshape(32, -1).t() + self.full.bias  # block-diagonal grouped conv
 
     def _half(self, x4: Tensor) -> Tensor:
         """(B, c4, D4, H4, W4) -> (B, c2, D2, H2, W2), dense."""
@@ -161,20 +122,11 @@ class SparseReconHead(nn.Module):
         offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]), every voxel (training)."""
         x4 = self._quarter(features)
         x2 = self._half(x4)
-        y = self._crop(depth_to_space3d(self._children(x2), 4), 2)  # (B, 4, D, H, W)
-        return [
-            self._branches(x4, 0),
-            self._branches(x2, 1),
-            (y[:, :1], torch.tanh(y[:, 1:]) * self.half_size_2),
-        ]
+        return [self._branches(x4, 0), self._branches(x2, 1), self._full(x2)]
 
     def packed(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """As ``ReconHead.packed``: (occupancy (B, 8, D2, H2, W2), offsets (B, 8, 3, D2, H2, W2))."""
-        y = self._children(self._half(self._quarter(features)))  # (B, 8 * 4, D2, H2, W2)
-        b, _, d2, h2, w2 = y.shape
-        y = y.reshape(b, 8, 4, d2, h2, w2)  # (B, child, [logit, dx, dy, dz], D2, H2, W2)
-        half = self.half_size_2.reshape(1, 1, 3, 1, 1, 1)
-        return torch.sigmoid(y[:, :, 0]), torch.tanh(y[:, :, 1:]) * half
+        return self._packed_children(self._half(self._quarter(features)))
 
     def sparse(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Coarse-to-fine inference, batch 1, with ``ReconHead.sparse``'s outputs: occupancy (N, 8),
@@ -200,14 +152,8 @@ class SparseReconHead(nn.Module):
         keep2 = torch.nonzero(gate_occ > gate).reshape(-1)
         voxels, order = torch.sort(vox.index_select(0, keep2))  # increasing half-scale index
         keep2 = keep2.index_select(0, order)
-        y = self._children(x2.index_select(0, keep2)).reshape(-1, 8, 4)  # (N, child, [logit, dx, dy, dz])
-        half = self.half_size_2.reshape(1, 1, 3)
-        return (
-            torch.sigmoid(y[:, :, 0]),
-            torch.tanh(y[:, :, 1:]) * half,
-            voxels,
-            gate_occ.index_select(0, keep2),
-        )
+        occ, off = self._row_children(x2.index_select(0, keep2))  # (N, 8), (N, 8, 3)
+        return occ, off, voxels, gate_occ.index_select(0, keep2)
 
     def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """Full scale only, dense layout: (occupancy (B, 1, D, H, W), offsets (B, 3, D, H, W))."""
