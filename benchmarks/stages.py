@@ -27,7 +27,7 @@ from typing import Any
 import click
 import numpy as np
 
-from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.errors import MsdnetError, one_line_errors
 
 T_BUCKETS = 10  # buckets of t over 1..T
 
@@ -50,6 +50,8 @@ def split_frames(
     ids = list(ds.frame_ids)
     if split == "select":  # model selection slice
         first, last, _ = run_dataset["val_frames"]
+        if first not in ids or last not in ids:
+            raise MsdnetError(root, f"has no frames {first}..{last} (the run's selection slice)")
         ids = ids[ids.index(first) : ids.index(last) + 1]
     return ds, pick_frames(ids, max_frames)
 

@@ -29,22 +29,16 @@ def load_frames(
     count: int | None,
     pipe: Pipeline,
     split: str | None = None,
-    frame_range: tuple[str, str] | None = None,
+    frame_ids: list[str] | None = None,
 ) -> list[tuple[str, PointCloud, np.ndarray]]:
-    """Up to ``count`` frames (None: all) of ``split`` (None: every frame; ``frame_range``: the
-    frames from its first to its last id, both included), spread evenly and in order, preprocessed
-    on the model's grid: (frame id, radar cloud with the model's columns, LiDAR (M, 3) float32
-    [x, y, z])."""
+    """Up to ``count`` frames (None: all) of ``split`` (None: every frame; or exactly ``frame_ids``),
+    spread evenly and in order, preprocessed on the model's grid: (frame id, radar cloud with the
+    model's columns, LiDAR (M, 3) float32 [x, y, z])."""
     from msdnet.runtime.io.datasets import open_dataset
     from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 
     ds = open_dataset(dataset, data, split)
-    ids = list(ds.frame_ids)
-    if frame_range is not None:
-        if not set(frame_range) <= set(ids):
-            raise MsdnetError(data, f"has no frames {frame_range[0]}..{frame_range[1]} (the run's slice)")
-        ids = ids[ids.index(frame_range[0]) : ids.index(frame_range[1]) + 1]
-    ids = pick_frames(ids, count)
+    ids = pick_frames(list(ds.frame_ids) if frame_ids is None else frame_ids, count)
     if not ids:
         raise MsdnetError(data, f"dataset has no frames{f' in split {split!r}' if split else ''}")
     frames = []

@@ -129,18 +129,17 @@ def run_steps(
     except MsdnetError as err:
         raise MsdnetError("--steps", str(err).split(": ", 1)[-1]) from None
     pipe.warmup()
-    frame_range = None
+    ids = None
     if split == "select":
+        from msdnet.benchmarks.stages import split_frames
         from msdnet.training.checkpoint import read_checkpoint
 
         source = checkpoint or pipe.artifact.manifest.get("source")
         if not source:
             raise MsdnetError("--split", "select needs --checkpoint (the manifest names no source run)")
-        first, last, _ = read_checkpoint(Path(source))[2].dataset["val_frames"]
-        frame_range = (first, last)
-    frames = load_frames(
-        data, dataset, max_frames, pipe, None if split in ("all", "select") else split, frame_range
-    )
+        run_dataset = read_checkpoint(Path(source))[2].dataset
+        ids = split_frames(run_dataset, dataset, data, "select", max_frames)[1]
+    frames = load_frames(data, dataset, max_frames, pipe, None if split in ("all", "select") else split, ids)
     thr = pipe.artifact.threshold if threshold is None else threshold
     rows = quality_by_steps(pipe, frames, steps, thr, seed)
     for r in rows:
