@@ -205,6 +205,12 @@ def export_model(
     help="R2LDM: classifier-free guidance weight w baked into the step graph [the config's, 1 = off].",
 )
 @click.option(
+    "--steps",
+    type=click.IntRange(min=1),
+    help="MSDNet: default DDIM step count T_m written to the manifest; --calibrate and --verify "
+    "sample with it [the checkpoint's config].",
+)
+@click.option(
     "--calibrate",
     type=click.IntRange(min=1),
     help="Choose the threshold on N frames of --data held out of the training range by the run "
@@ -223,6 +229,7 @@ def main(
     sign_key: Path | None,
     threshold: float | None,
     guidance: float | None,
+    steps: int | None,
     calibrate: int | None,
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
@@ -249,6 +256,8 @@ def main(
             raise MsdnetError("--guidance", f"is for R2LDM checkpoints, not a {state.kind}")
         cfg = dataclasses.replace(cfg, r2ldm_guidance=guidance)
         model.step.guidance = guidance  # the step graph (and calibration) sample with it
+    if steps is not None:
+        cfg = _with_steps(model, cfg, state.kind, steps)
     if calibrate:
         holdout = float(state.dataset.get("holdout", 0.0))
         threshold = _calibrated(model, cfg, dataset, data, calibrate, seed, holdout)
@@ -268,6 +277,18 @@ def main(
         click.echo(line)
     sizes = ", ".join(f"{g['file']} {g['bytes'] / 1e6:.2f} MB" for g in manifest["graphs"])
     click.echo(f"wrote {out}: {state.kind}, {manifest['parameters']['total']:,} parameters; {sizes}")
+
+
+def _with_steps(model: Any, cfg: ModelConfig, kind: str, steps: int) -> ModelConfig:
+    """``cfg`` (and the model's own copy, which ``predict`` samples with) with the manifest's
+    default T_m = ``steps``: the interval becomes m / T_m; the runtime can still choose any."""
+    if kind != "student":
+        raise MsdnetError("--steps", f"sets MSDNet's T_m, not a {kind}'s sampler")
+    if steps > cfg.diffusion.start_step:
+        raise MsdnetError("--steps", f"T_m {steps} exceeds the start step m = {cfg.diffusion.start_step}")
+    cfg = dataclasses.replace(cfg, diffusion=dataclasses.replace(cfg.diffusion, sample_steps=steps))
+    model.cfg = cfg
+    return cfg
 
 
 def _calibrated(

@@ -141,6 +141,25 @@ def test_threshold_option_goes_into_the_manifest(student_ckpt, tmp_path):
     assert _export([student_ckpt, "--out", tmp_path / "n", "--threshold", "1.5"]).exit_code == 2
 
 
+def test_steps_option_sets_the_manifest_default(student_ckpt, tmp_path):
+    m0 = load_artifact(_exported(student_ckpt, tmp_path / "a"))
+    r = _export([student_ckpt, "--out", tmp_path / "m", "--steps", "2"])
+    assert r.exit_code == 0, r.output
+    m = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    assert m["diffusion"]["sample_steps"] == 2 != m0.diffusion.sample_steps
+    assert m["diffusion"]["interval"] == m["diffusion"]["start_step"] / 2
+    assert m["config"]["diffusion"]["sample_steps"] == 2
+    assert load_artifact(tmp_path / "m").diffusion.sample_steps == 2
+    too_many = _export([student_ckpt, "--out", tmp_path / "n", "--steps", "100000"])
+    assert too_many.exit_code == 2 and "exceeds the start step" in too_many.output
+
+
+def _exported(ckpt: Path, out: Path) -> Path:
+    r = _export([ckpt, "--out", out])
+    assert r.exit_code == 0, r.output
+    return out
+
+
 def test_export_refuses_a_teacher(tmp_path):
     ckpt = make_checkpoint(tmp_path / "teacher", "teacher")
     r = _export([ckpt, "--out", tmp_path / "m"])
