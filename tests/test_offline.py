@@ -132,3 +132,20 @@ def test_local_ray_stays_on_loopback_without_usage_stats_or_metadata_probe(monke
         monkeypatch.setattr(usage_lib, "get_cloud_from_metadata_requests", probe)
         assert usage_lib.get_cluster_config_to_report(str(config)).cloud_provider == "local"
     assert not config.exists()  # the private folder goes with the instance
+
+
+def test_a_second_local_ray_instance_in_the_same_process_starts(monkeypatch):
+    """Ray turns token auth on at its first local init and caches the token; the next instance's
+    private HOME has no token file, so without ``RAY_AUTH_TOKEN`` its GCS server aborted and
+    ray.init waited out the GCS port timeout (CI, 2026-12-02)."""
+    ray = pytest.importorskip("ray", reason="the [ray] extra (CI installs it)")
+    from msdnet.runtime.frontends.infer.ray_batch import local_instance
+
+    if ray.is_initialized():
+        pytest.skip("this process is already connected to Ray")
+    monkeypatch.setenv("RAY_gcs_server_port_wait_time_s", "20")  # a failure in 20 s, not 120
+    token = os.environ.get("RAY_AUTH_TOKEN")
+    for _ in range(2):
+        with local_instance(num_cpus=1):
+            assert ray.get(ray.put(7)) == 7
+        assert os.environ.get("RAY_AUTH_TOKEN") == token  # the driver's environment is left as it was

@@ -23,7 +23,13 @@ processes see a private ``HOME`` holding a ``ray_bootstrap_config.yaml`` that na
 provider (without one, Ray's usage module asks 169.254.169.254 and metadata.google.internal
 which cloud it runs on); the instance's workers inherit that ``HOME`` too (a job-level
 ``runtime_env`` restoring the real one made the workers crash at start with Ray 2.60), and the
-folder is removed when the instance shuts down. A loopback ADDRESS
+folder is removed when the instance shuts down. Ray >= 2.59 turns token authentication on for a
+new local instance and caches the token in this process: a token file written into the private
+``HOME`` would be gone for the next instance, whose GCS server then aborts ("Token authentication
+is enabled but Ray couldn't find an authentication token") and Ray waits out its GCS port
+timeout. So every local instance of a process gets the same random token through
+``RAY_AUTH_TOKEN`` in its head processes' environment, unless the user set up Ray's
+authentication (``RAY_AUTH_MODE``, ``RAY_AUTH_TOKEN`` or ``RAY_AUTH_TOKEN_PATH``) already. A loopback ADDRESS
 (``127.0.0.1:6379``) is kept as given. An ADDRESS where nothing answers fails after ``timeout``
 seconds (``--ray-timeout``, default 30) in one line naming it, instead of Ray's endless retries.
 
@@ -39,6 +45,7 @@ import contextlib
 import json
 import logging
 import os
+import secrets
 import shutil
 import socket
 import tempfile
@@ -61,6 +68,8 @@ LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "::1")
 CLIENT_PORT = 10001  # Ray Client's default port (ray://HOST)
 BOOTSTRAP_CONFIG = "ray_bootstrap_config.yaml"  # read from ~ by Ray's usage module (dashboard)
 LOCAL_PROVIDER = "# msdnet: a local Ray instance (no cloud to ask about)\nprovider:\n  type: local\n"
+AUTH_VARS = ("RAY_AUTH_MODE", "RAY_AUTH_TOKEN", "RAY_AUTH_TOKEN_PATH")  # the user's own Ray auth setup
+_LOCAL_TOKEN: list[str] = []  # this process's token for its local instances (made once)
 
 
 class _InferActor:
@@ -80,14 +89,29 @@ class _InferActor:
 
 def _ray() -> Any:
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # before Ray starts anything
-    # a local head on a loaded 2-core machine can take over Ray's default 30 s to bind its GCS
-    # port (seen in CI next to a training: "Timed out waiting for file .../gcs_server_port")
+    # a slow start of the GCS server gets 120 s instead of Ray's 30 (a GCS server that aborts,
+    # as one without its auth token did, waits all of it: see local_instance)
     os.environ.setdefault("RAY_gcs_server_port_wait_time_s", "120")
     try:
         import ray
     except ImportError:
         raise MsdnetError("--ray", "needs Ray Data: pip install 'msdnet[ray]'") from None
     return ray
+
+
+@contextlib.contextmanager
+def _environment(values: dict[str, str]) -> Iterator[None]:
+    """Set environment variables for the block, then restore each one (or remove it again)."""
+    before = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 @contextlib.contextmanager
@@ -117,23 +141,20 @@ def local_instance(num_cpus: int | None = None) -> Iterator[None]:
     """Start a Ray instance on this machine that stays on it (module docstring), shut it down on exit."""
     ray = _ray()
     home = Path(tempfile.mkdtemp(prefix="msdnet-ray-home-"))
-    real_home = os.environ.get("HOME")
+    head_env = {"HOME": str(home)}  # what the head processes started now inherit
+    if not _LOCAL_TOKEN and not any(v in os.environ for v in AUTH_VARS):  # decided once: Ray
+        _LOCAL_TOKEN.append(secrets.token_hex(32))  # itself sets RAY_AUTH_MODE=token at its first init
+    if _LOCAL_TOKEN:
+        head_env["RAY_AUTH_TOKEN"] = _LOCAL_TOKEN[0]
     try:
         (home / BOOTSTRAP_CONFIG).write_text(LOCAL_PROVIDER)
-        os.environ["HOME"] = str(home)  # what the head processes started now inherit
-        try:
-            with _loopback_kept(ray):
-                ray.init(
-                    address="local",
-                    _node_ip_address=LOOPBACK,
-                    num_cpus=num_cpus,
-                    **_init_options(),
-                )
-        finally:
-            if real_home is None:
-                os.environ.pop("HOME", None)
-            else:
-                os.environ["HOME"] = real_home
+        with _environment(head_env), _loopback_kept(ray):
+            ray.init(
+                address="local",
+                _node_ip_address=LOOPBACK,
+                num_cpus=num_cpus,
+                **_init_options(),
+            )
         yield
     except MsdnetError:
         raise
