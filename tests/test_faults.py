@@ -82,6 +82,24 @@ def _alive(pid: int) -> bool:
     return state not in ("Z", "X")  # a zombie has exited
 
 
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to see a zombie")
+def test_a_zombie_writers_temp_is_stale(tmp_path):
+    """A killed worker whose parent died too stays a zombie until reaped; kill(pid, 0) still
+    succeeds on it, which kept its temp file (CI, 2026-12-02). It writes nothing more: stale."""
+    from msdnet.runtime.io.atomic import clean_stale_temps, temp_name
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])  # never waited for: a zombie
+    deadline = time.monotonic() + 30
+    while _alive(child.pid) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert Path(f"/proc/{child.pid}/stat").exists() and not _alive(child.pid)
+    (tmp_path / temp_name("a.npy", pid=child.pid)).write_bytes(b"half")
+    (tmp_path / temp_name("b.npy")).write_bytes(b"mine")  # this live process's own
+    assert clean_stale_temps(tmp_path) == 1
+    assert [p.name.endswith(".b.npy.tmp") for p in tmp_path.iterdir()] == [True]
+    child.wait()
+
+
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to find the worker processes")
 def test_sigkill_of_workers_run_leaves_no_worker_and_rerun_cleans_and_resumes(model, tmp_path):
     inputs, out = tmp_path / "in", tmp_path / "out"

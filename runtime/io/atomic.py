@@ -36,6 +36,8 @@ def temp_name(target_name: str, pid: int | None = None) -> str:
 
 
 def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` can still write: it exists and is not a zombie (a killed writer
+    whose parent died too stays a zombie until something reaps it; it writes nothing more)."""
     if pid == os.getpid():
         return True
     try:
@@ -43,8 +45,12 @@ def _pid_alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except PermissionError:  # exists, belongs to someone else
+        pass
+    try:  # Linux: the state letter after the "(comm)" field
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
         return True
-    return True
+    return state not in ("Z", "X")
 
 
 def clean_stale_temps(folder: str | Path) -> int:
