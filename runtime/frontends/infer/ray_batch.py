@@ -120,16 +120,13 @@ def _loopback_kept(ray: Any) -> Iterator[None]:
     this node's address the loopback one) in this process and in the processes it starts."""
     constants = ray._private.ray_constants
     var = constants.ENABLE_RAY_CLUSTERS_ENV_VAR  # RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER
-    before, flag = os.environ.get(var), constants.ENABLE_RAY_CLUSTER
-    os.environ[var], constants.ENABLE_RAY_CLUSTER = "0", False
+    flag = constants.ENABLE_RAY_CLUSTER
+    constants.ENABLE_RAY_CLUSTER = False
     try:
-        yield
+        with _environment({var: "0"}):
+            yield
     finally:
         constants.ENABLE_RAY_CLUSTER = flag
-        if before is None:
-            os.environ.pop(var, None)
-        else:
-            os.environ[var] = before
 
 
 def _init_options() -> dict[str, Any]:
