@@ -31,7 +31,7 @@ from typing import Any
 import click
 import numpy as np
 
-from msdnet.benchmarks.machine import machine_info
+from msdnet.benchmarks.machine import machine_info, shown_path
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.frontends.model_args import resolve_model
 
@@ -277,7 +277,7 @@ def live_bench(
         }
         start = 1_700_000_000 * 10**9
         doc: dict[str, Any] = {
-            "model": str(model),
+            "model": shown_path(model),
             "threads": threads,
             "load_average": [round(x, 2) for x in os.getloadavg()],
         }

@@ -6,6 +6,7 @@ import os
 import platform
 import time
 from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -26,6 +27,20 @@ class MachineInfo:
 
     def to_json(self) -> dict[str, object]:
         return asdict(self)
+
+
+def shown_path(path: Path | str) -> str:
+    """``path`` as a results document records it: relative to the working folder (or to the
+    installed package's root, for bundled models) so that no document names a folder of the
+    machine it ran on; outside both, only its last two parts."""
+    p = Path(path).absolute()
+    package_root = Path(__file__).resolve().parents[1]  # the msdnet package (models/ is under it)
+    for root in (Path.cwd(), package_root):
+        try:
+            return p.relative_to(root).as_posix()
+        except ValueError:
+            continue
+    return Path(*p.parts[-2:]).as_posix()
 
 
 def cpu_model() -> str:

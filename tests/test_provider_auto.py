@@ -173,6 +173,15 @@ def test_cache_location_and_bad_files(tmp_path, monkeypatch, folder):
     assert len(pipe(_scan(pipe), steps=2).points) > 0
 
 
+def test_results_name_the_cache_without_machine_folders(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    shown = provider_auto.cache_shown
+    assert shown(tmp_path / "xdg" / "msdnet" / "p.json") == "$XDG_CACHE_HOME/msdnet/p.json"
+    assert shown(tmp_path / "home" / ".cache" / "p.json") == "~/.cache/p.json"
+    assert shown(tmp_path / "elsewhere" / "p.json") == "p.json"
+
+
 def test_without_openvino_every_graph_stays(folder, cache, monkeypatch):
     import importlib.util
 
@@ -205,7 +214,8 @@ def test_latency_results_record_the_picks(folder, cache):
     pipe = Pipeline.from_dir(folder, "auto", threads=1)
     text = "\n".join(auto_section({"provider_auto": {"msdnet": pipe.auto.to_json()}}))
     assert "## --provider auto" in text and text.count("| msdnet |") == len(pipe.sessions)
-    assert "DeformConv" in text and str(cache) in text
+    assert "DeformConv" in text and "$XDG_CACHE_HOME/msdnet/providers.json" in text
+    assert str(cache.parent) not in text  # results name no folder of the machine
     enc = pipe.auto.picks[onnx_spec.ENCODER.file]
     assert f"| msdnet | encoder.onnx | **{enc.engine}** | {enc.ms['onnxruntime']:.3f} |" in text
     assert auto_section({"provider_auto": {}}) == []

@@ -93,9 +93,22 @@ class AutoReport:
     def to_json(self) -> dict[str, Any]:
         return {
             "picks": {f: p.to_json() for f, p in self.picks.items()},
-            "cache": str(self.cache),
+            "cache": cache_shown(self.cache),
             "cache_note": self.cache_note,
         }
+
+
+def cache_shown(cache: Path) -> str:
+    """``cache`` as results documents record it: under ``$XDG_CACHE_HOME`` or ``~`` named so, not by
+    the machine's folders."""
+    base = os.environ.get("XDG_CACHE_HOME", "")
+    for root, name in ((base, "$XDG_CACHE_HOME"), (str(Path.home()), "~")):
+        if root and Path(root).is_absolute():
+            try:
+                return f"{name}/{cache.relative_to(root).as_posix()}"
+            except ValueError:
+                continue
+    return cache.name
 
 
 def cache_path() -> Path:
