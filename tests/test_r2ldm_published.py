@@ -173,3 +173,33 @@ def test_published_recipe_refuses_the_student(tmp_path):
         ],
     )
     assert res.exit_code == 2 and "published is an R2LDM recipe" in res.output
+
+
+def test_latency_times_it_on_msdnets_scan_by_column_name(tmp_path):
+    """``msdnet-bench latency --model MSDNET --r2ldm PUBLISHED``: the published R2LDM reads x y z
+    only, MSDNet's scan has more columns; the suite hands it the scan by column name (regression:
+    "points must be (N, 3)" on Astyx models)."""
+    from msdnet.benchmarks.latency.suite import _named
+    from msdnet.benchmarks.latency.timing import synthetic_radar, time_stages
+    from msdnet.export.graphs import export_all
+    from msdnet.export.manifest import build_manifest, write_manifest
+    from msdnet.runtime.engine.pipeline import Pipeline
+    from msdnet.runtime.errors import MsdnetError
+    from msdnet.training.models import build_model
+
+    cfg = _cfg()
+    msdnet_columns = ("x", "y", "z", "v_r", "mag")  # an Astyx MSDNet's radar columns
+    torch.manual_seed(0)
+    with one_torch_thread():
+        model = build_model("r2ldm", cfg, build_model("teacher", cfg)).eval()
+        params, _ = export_all(model, "r2ldm", cfg, tmp_path)
+        write_manifest(tmp_path, build_manifest(tmp_path, "r2ldm", cfg, params, "test"))
+    pipe = Pipeline.from_dir(tmp_path, threads=1)
+    assert pipe.columns == ("x", "y", "z")
+    scan = synthetic_radar(msdnet_columns, cfg.grid, 200, seed=1)  # (200, 5)
+    with pytest.raises(MsdnetError, match="points must be"):
+        pipe(scan)
+    runs = time_stages(pipe, _named(scan, msdnet_columns), None, 0.5, 1)
+    assert all(len(v) == 1 and v[0] > 0 for v in runs.seconds.values() if v)
+    ref = pipe(scan[:, :3].copy(), threshold=0.5)
+    assert runs.decoded == len(ref.points)  # the same x y z, the same seed: the same points

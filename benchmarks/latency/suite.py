@@ -46,6 +46,7 @@ from msdnet.benchmarks.latency.timing import (
 )
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
 
 TABLE3_STEPS = (3, 10, 50, 100)  # MSDNet Table III
@@ -122,6 +123,14 @@ def _threshold(pipe: Pipeline, weights: str, points: Any, cfg: LatencyConfig) ->
     return pipe.artifact.threshold, "manifest threshold"
 
 
+def _named(points: Any, columns: tuple[str, ...]) -> Any:
+    """``points`` (N, C) in MSDNet's ``columns`` as a PointCloud, so that any pipeline picks its own
+    columns by name; a PointCloud as it is."""
+    if isinstance(points, PointCloud):
+        return points
+    return PointCloud(np.ascontiguousarray(points, dtype=np.float32), tuple(columns))
+
+
 def _inputs(cfg: LatencyConfig, pipe: Pipeline) -> tuple[Any, str, list]:
     """(timing input, its description, quality frames): the first --data frame, else synthetic."""
     if cfg.data is None:
@@ -172,9 +181,11 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         points, source, frames = _inputs(cfg, msd)
         gate_note = choose_gate(msd, points, pair.msdnet.weights, _target(msd, cfg), cfg.seed)
         pipes["r2ldm"].gate = pipes["r2ldm"].artifact.gate  # R2LDM: its manifest's (usually dense)
+        # the same scan by column name: an R2LDM may read fewer columns (as published: x y z only)
+        named = {k: _named(points, msd.columns) if k != "msdnet" else points for k in KINDS}
         thr, thr_notes = {}, {}
         for k in KINDS:
-            thr[k], thr_notes[k] = _threshold(pipes[k], getattr(pair, k).weights, points, cfg)
+            thr[k], thr_notes[k] = _threshold(pipes[k], getattr(pair, k).weights, named[k], cfg)
         log(f"timing MSDNet ({cfg.repeats} frames) ...")
         main = msdnet_timings(msd, points, thr["msdnet"], cfg.repeats, cfg.warmup, cfg.seed)
         sg = main["step_graph"]  # yardstick: the best sgemm rate seen in this run (load only slows it)
@@ -182,7 +193,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         sg["flops_over_peak"] = sg["gflops_rate_best"] / sg["sgemm_gflops_peak"]
         runs: StageRuns = main["runs"]
         log(f"timing R2LDM ({cfg.r2ldm_repeats} frames) ...")
-        r2 = time_stages(pipes["r2ldm"], points, None, thr["r2ldm"], cfg.r2ldm_repeats, cfg.seed)
+        r2 = time_stages(pipes["r2ldm"], named["r2ldm"], None, thr["r2ldm"], cfg.r2ldm_repeats, cfg.seed)
         main["step_graph"]["r2ldm_step_ms"] = summary(BareStep(pipes["r2ldm"]).seconds(3))["median"]
         steps_list = tuple(sorted(set(cfg.steps) | set(TABLE3_STEPS)))
         steps_rows = sweep(
