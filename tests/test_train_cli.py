@@ -259,3 +259,25 @@ def test_new_head_on_a_trained_encoder_then_students_keep_their_weights(astyx_ro
     assert r.exit_code == 2 and "needs --teacher" in r.output
     r = CliRunner().invoke(main, ["student", *one, "--head-only", "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "--head-only" in r.output
+    # --head-only on a student: its head copy learns on its own F_r^D, nothing else moves
+    s_head = tmp_path / "s_head"
+    _train(
+        [
+            "student",
+            *one,
+            "--lr",
+            "1e-2",
+            "--head",
+            "sparse",
+            "--head-only",
+            "--init",
+            str(s_new / "best"),
+            "--out",
+            str(s_head),
+        ]
+    )
+    tuned, _, t_state = load_checkpoint(s_head / "best")
+    tuned = tuned.state_dict()
+    assert t_state.train.head_only and tuned.keys() == new.keys()
+    moved = {k for k in new if not torch.equal(new[k], tuned[k])}
+    assert moved and all(k.startswith("teacher.head.") for k in moved)

@@ -269,7 +269,9 @@ def _plan(
 @click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
 @click.option("--head", "head_kind", default=None, help="Recon head: dense | sparse [dense].")
 @click.option(
-    "--head-only", is_flag=True, help="Teacher: train only the head (encoder and S2D as --init left them)."
+    "--head-only",
+    is_flag=True,
+    help="Train only the head: a teacher's on its --init encoder, a student's on its own F_r^D.",
 )
 @click.option(
     "--init",
@@ -329,10 +331,8 @@ def main(
         raise MsdnetError("--ema", f"is a decay in [0, 1), got {ema}")
     options = {"batch_size": batch_size, "lr": lr, "seed": seed, "num_workers": workers, "ema_decay": ema}
     if head_only:
-        if kind != "teacher" or init is None:
-            raise MsdnetError(
-                "--head-only", "trains a teacher's head on the encoder of its --init checkpoint"
-            )
+        if kind == "r2ldm" or init is None:
+            raise MsdnetError("--head-only", "trains only the head of a teacher or student --init checkpoint")
         options["head_only"] = True
     if not augment:
         options["augment"] = AugmentConfig.off()
@@ -513,9 +513,13 @@ def _run(
         model = _init_model(Path(spec.init), spec.kind, cfg, teacher)
     else:
         model = build_model(spec.kind, cfg, teacher=teacher)
-    if tcfg.head_only:  # the students' distillation target F_l^D stays what it was
+    if tcfg.head_only and spec.kind == "teacher":  # the students' distillation target stays
         model.encoder.requires_grad_(False)
         model.s2d.requires_grad_(False)
+    elif tcfg.head_only:  # a student: its head copy alone, on its own F_r^D (Eq. 7 only)
+        model.requires_grad_(False)
+        model.teacher.head.requires_grad_(True)
+        model.head_only = True
     metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
     if info.is_main:

@@ -184,8 +184,9 @@ class TrainConfig:
     # (0 = off; the official R2LDM code evaluates an EMA at 0.995). When on, validation scores
     # the EMA weights and best/ holds them; last/ keeps the raw weights and the EMA for resume
     ema_decay: float = 0.0
-    # teacher only: train the reconstruction head alone, the LiDAR encoder and S2D kept as --init
-    # left them (a new head on a trained encoder: the students' distillation target is unchanged)
+    # train the reconstruction head alone: a teacher's on the LiDAR encoder and S2D --init left
+    # (the students' distillation target is unchanged); a student's (the teacher copy it holds) on
+    # its own F_r^D with Eq. 7, everything else frozen
     head_only: bool = False
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 

@@ -142,6 +142,8 @@ class StudentModel(_FrozenTeacherMixin):
             else None
         )
         self._attach_teacher(cfg, teacher)
+        # --head-only: train only the head (the teacher copy this student holds) on F_r^D
+        self.head_only = False
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
         self.register_buffer("train_coeffs", torch.tensor(train_coeffs), persistent=False)
 
@@ -187,6 +189,8 @@ class StudentModel(_FrozenTeacherMixin):
         """Eq. 15: {"loss", "recon", "distill_rec", "distill_diff", "diff", per-scale occ/off,
         "align" (the adapter's alignment loss, when ``losses.adapter_align > 0``), "gate" (mean
         adapter gate delta; a diagnostic, not in the loss)}."""
+        if self.head_only:
+            return self._head_losses(batch)
         w = self.cfg.losses
         if self.grad_balance is not None and self.training:
             self.grad_balance.fold()  # the previous step's gradient norms
@@ -225,6 +229,18 @@ class StudentModel(_FrozenTeacherMixin):
         if "align" in out:
             total = total + w.adapter_align * out["align"]
         return {"loss": total, **out, **recon}
+
+    def _head_losses(self, batch: Batch) -> dict[str, Tensor]:
+        """Eq. 7 on the student's own F_r^D (the training loop's T_m), the rest frozen: what
+        ``--head-only`` trains on a student (its copy of the head; the teacher's encoder, so the
+        distillation target, untouched): {"loss", "recon", per-scale occ/off}."""
+        with torch.no_grad():
+            f_r = self.reconstructed(batch.radar)
+            f_d = f_r
+            if self.cfg.use_dgfd:
+                f_d = ddim_loop(self.step, self.adapter(f_r, torch.randn_like(f_r)), self.train_coeffs)
+        terms = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, self.cfg.losses)
+        return {"loss": terms["recon"], **terms}
 
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
