@@ -170,7 +170,7 @@ class StudentModel(_FrozenTeacherMixin):
         ``denoiser_grad_steps`` / ``denoiser_grad_ratio`` truncate and normalise the loop's
         gradient on the denoiser (training/nn/grad_balance.py)."""
         w = self.cfg.losses
-        if not self.training:
+        if not self.training or self.head_only:  # head_only: the loop runs under no_grad
             return self.step
         if not w.denoiser_distill_grad:
             return loop_steps(self.step, n_steps, -1, None)  # every step detached
@@ -236,9 +236,7 @@ class StudentModel(_FrozenTeacherMixin):
         distillation target, untouched): {"loss", "recon", per-scale occ/off}."""
         with torch.no_grad():
             f_r = self.reconstructed(batch.radar)
-            f_d = f_r
-            if self.cfg.use_dgfd:
-                f_d = ddim_loop(self.step, self.adapter(f_r, torch.randn_like(f_r)), self.train_coeffs)
+            f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
         terms = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, self.cfg.losses)
         return {"loss": terms["recon"], **terms}
 
