@@ -62,6 +62,9 @@ class CheckpointState:
     dataset: dict[str, Any] = field(default_factory=dict)  # dataset name, root, split, frames
     world_size: int = 1  # processes that trained it (torchrun)
     init: str | None = None  # checkpoint whose weights started the run (msdnet-train --init)
+    # the exported model folder the weights were read back from (training/recover.py): its
+    # teacher's LiDAR branch is in no graph, so it is not trained weights
+    recovered_from: str | None = None
 
 
 # ---------------------------------------------------------------- config <-> JSON
@@ -252,6 +255,7 @@ def save_checkpoint(
                     "dataset",
                     "world_size",
                     "init",
+                    "recovered_from",
                 )
             },
             "seed": state.train.seed,

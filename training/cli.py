@@ -21,7 +21,7 @@ import torch
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import collate
-from msdnet.training.checkpoint import config_diff, load_checkpoint, read_checkpoint
+from msdnet.training.checkpoint import CheckpointState, config_diff, load_checkpoint, read_checkpoint
 from msdnet.training.config import (
     MODEL_PRESETS,
     R2LDM_LR,
@@ -274,6 +274,20 @@ def _plan(
     help="Train only the head: a teacher's on its --init encoder, a student's on its own F_r^D.",
 )
 @click.option(
+    "--distill",
+    "distill_steps",
+    type=int,
+    default=None,
+    help="Student: few-step distillation of the --init loop: its denoiser alone learns to reach in "
+    "--loop-steps K steps what the --init loop reaches in N (the model's config is --init's).",
+)
+@click.option(
+    "--distill-head",
+    type=float,
+    default=None,
+    help="With --distill: weight of the full-scale occupancy MSE (frozen head) beside the latent MSE [0].",
+)
+@click.option(
     "--init",
     type=click.Path(path_type=Path),
     default=None,
@@ -319,6 +333,8 @@ def main(
     time_embed: int | None,
     head_kind: str | None,
     head_only: bool,
+    distill_steps: int | None,
+    distill_head: float | None,
     init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -334,6 +350,15 @@ def main(
         if kind == "r2ldm" or init is None:
             raise MsdnetError("--head-only", "trains only the head of a teacher or student --init checkpoint")
         options["head_only"] = True
+    if distill_steps is not None:
+        if kind != "student" or (init is None and not resume) or head_only or loop_steps is None:
+            raise MsdnetError("--distill", "distils a student --init checkpoint's loop: give --loop-steps K")
+        options["distill_steps"] = distill_steps
+        if distill_head is not None and distill_head < 0:
+            raise MsdnetError("--distill-head", f"must be >= 0, got {distill_head}")
+        options["distill_head"] = distill_head
+    elif distill_head is not None:
+        raise MsdnetError("--distill-head", "is a --distill weight")
     if not augment:
         options["augment"] = AugmentConfig.off()
     overrides = {k: v for k, v in options.items() if v is not None}
@@ -390,6 +415,8 @@ def main(
         cfg = replace(
             cfg, train_sample_steps=loop_steps, diffusion=replace(cfg.diffusion, sample_steps=loop_steps)
         )
+    if tcfg.distill_steps:
+        cfg = _distill_config(init if init is not None else out / "last", cfg.train_sample_steps, tcfg)
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")
@@ -467,7 +494,21 @@ def _with_latent_norm(
     return replace(cfg, latent_norm=norm)
 
 
-def _init_model(path: Path, kind: str, cfg: ModelConfig, teacher: torch.nn.Module | None) -> torch.nn.Module:
+def _distill_config(path: Path, steps: int, tcfg: TrainConfig) -> ModelConfig:
+    """The config of a ``--distill N --loop-steps K`` run: the checkpoint's, its T_m set to K < N."""
+    icfg = read_checkpoint(path)[1]
+    if not icfg.use_dgfd:
+        raise MsdnetError(path, "has no DGFD loop to distil (trained with --ablate dgfd)")
+    if not 1 <= steps < tcfg.distill_steps <= icfg.diffusion.start_step:
+        top = icfg.diffusion.start_step
+        got = f"got {steps} and {tcfg.distill_steps}"
+        raise MsdnetError("--distill", f"needs 1 <= --loop-steps < N <= m ({top}), {got}")
+    return replace(icfg, train_sample_steps=steps, diffusion=replace(icfg.diffusion, sample_steps=steps))
+
+
+def _init_model(
+    path: Path, kind: str, cfg: ModelConfig, teacher: torch.nn.Module | None, distill: bool = False
+) -> torch.nn.Module:
     """The model of checkpoint ``path`` (weights, and the teacher a student / R2LDM holds), after
     checking it is a ``kind`` of the same config. Two exceptions: a new ``head_kind`` (the
     tensors whose names and shapes match are taken, the rest start fresh), and a student / R2LDM
@@ -475,7 +516,8 @@ def _init_model(path: Path, kind: str, cfg: ModelConfig, teacher: torch.nn.Modul
     folder, icfg, istate = read_checkpoint(path)
     if istate.kind != kind:
         raise MsdnetError(folder, f"--init is a {istate.kind} checkpoint, this run trains a {kind}")
-    differs = config_diff(icfg, cfg, ignore=("head_kind",))
+    loop = ("train_sample_steps", "diffusion") if distill else ()  # --distill sets a new T_m
+    differs = config_diff(icfg, cfg, ignore=("head_kind", *loop))
     if differs:
         raise MsdnetError(folder, f"--init config differs from this run: {', '.join(differs)}"[:300])
     if kind != "teacher" and teacher is None and icfg.head_kind != cfg.head_kind:
@@ -498,6 +540,12 @@ def _init_model(path: Path, kind: str, cfg: ModelConfig, teacher: torch.nn.Modul
     return model
 
 
+def _recovered(spec: RunSpec) -> CheckpointState | None:
+    """The state of the checkpoint this run starts from (--init, or OUT/last on resume)."""
+    path = Path(spec.init) if spec.init else spec.out / "last" if spec.resume else None
+    return read_checkpoint(path)[2] if path is not None else None
+
+
 def _run(
     spec: RunSpec,
     cfg: ModelConfig,
@@ -510,7 +558,7 @@ def _run(
     """Build the model (same seed on every rank), train it, print one summary line."""
     torch.manual_seed(tcfg.seed)
     if spec.init is not None:
-        model = _init_model(Path(spec.init), spec.kind, cfg, teacher)
+        model = _init_model(Path(spec.init), spec.kind, cfg, teacher, distill=tcfg.distill_steps > 0)
     else:
         model = build_model(spec.kind, cfg, teacher=teacher)
     if tcfg.head_only and spec.kind == "teacher":  # the students' distillation target stays
@@ -520,6 +568,17 @@ def _run(
         model.requires_grad_(False)
         model.teacher.head.requires_grad_(True)
         model.head_only = True
+    if tcfg.distill_steps:  # the loop of the --init checkpoint (also on resume), frozen
+        source = spec.init or read_checkpoint(spec.out / "last")[2].init
+        model.requires_grad_(False)
+        model.step.requires_grad_(True)
+        source_step = load_checkpoint(Path(source))[0].step
+        model.enable_distillation(source_step, tcfg.distill_steps, tcfg.distill_head)
+    elif getattr(_recovered(spec), "recovered_from", None) and not tcfg.head_only:
+        raise MsdnetError(
+            spec.init,
+            "was read back from an exported model (no teacher LiDAR branch): --distill or --head-only only",
+        )
     metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
     if info.is_main:

@@ -188,6 +188,12 @@ class TrainConfig:
     # (the students' distillation target is unchanged); a student's (the teacher copy it holds) on
     # its own F_r^D with Eq. 7, everything else frozen
     head_only: bool = False
+    # few-step distillation of a student's loop (--distill N): its denoiser alone learns to reach,
+    # in the config's T_m steps, the F_r^D a frozen copy of the --init loop reaches in N (0 = off)
+    distill_steps: int = 0
+    # --distill-head W: add W x the MSE of the full-scale occupancy the frozen head decodes from
+    # both loops' F_r^D (what the threshold sees), beside the latent MSE
+    distill_head: float = 0.0
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 
 

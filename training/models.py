@@ -144,6 +144,9 @@ class StudentModel(_FrozenTeacherMixin):
         self._attach_teacher(cfg, teacher)
         # --head-only: train only the head (the teacher copy this student holds) on F_r^D
         self.head_only = False
+        # --distill: (frozen step, its (N, 3) coefficients), kept out of the state_dict
+        self._distill_from: tuple[nn.Module, Tensor] | None = None
+        self.distill_head = 0.0  # weight of the occupancy term (TrainConfig.distill_head)
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
         self.register_buffer("train_coeffs", torch.tensor(train_coeffs), persistent=False)
 
@@ -191,6 +194,8 @@ class StudentModel(_FrozenTeacherMixin):
         adapter gate delta; a diagnostic, not in the loss)}."""
         if self.head_only:
             return self._head_losses(batch)
+        if self._distill_from is not None:
+            return self._distill_losses(batch)
         w = self.cfg.losses
         if self.grad_balance is not None and self.training:
             self.grad_balance.fold()  # the previous step's gradient norms
@@ -229,6 +234,40 @@ class StudentModel(_FrozenTeacherMixin):
         if "align" in out:
             total = total + w.adapter_align * out["align"]
         return {"loss": total, **out, **recon}
+
+    def enable_distillation(self, source: nn.Module, steps: int, head_weight: float = 0.0) -> None:
+        """Few-step distillation (``msdnet-train student --distill N --loop-steps K``): ``source``,
+        the step module of the loop being distilled (frozen here), runs N DDIM steps from x_m; this
+        student's own step must reach the same F_r^D in K (``train_coeffs``). Direct distillation of
+        the deterministic (eta = 0) sampler: x_m -> x_0 is a fixed map, so each batch is its own
+        target, no progressive halving needed. Only the denoiser should be left trainable."""
+        frozen = source.requires_grad_(False).eval()
+        coeffs = torch.tensor(step_coefficients(self.cfg.diffusion, sample_steps=steps))  # (N, 3)
+        self._distill_from = (frozen, coeffs)
+        self.distill_head = head_weight
+
+    def _distill_losses(self, batch: Batch) -> dict[str, Tensor]:
+        """{"loss", "distill": MSE of the K-step F_r^D to the N-step one, "distill_occ": the same for the
+        full-scale occupancy the head decodes (with ``distill_head``); diagnostics "undistilled"
+        (the frozen loop at K steps against its own N steps; "undistilled_occ") and "span" (x_m
+        against N steps)}."""
+        assert self._distill_from is not None
+        source, coeffs = self._distill_from
+        with torch.no_grad():
+            f_r = self.reconstructed(batch.radar)
+            x_m = self.adapter(f_r, torch.randn_like(f_r))  # Eq. 12
+            target = ddim_loop(source, x_m, coeffs)  # (B, C, H8, W8) the N-step loop
+            before = ddim_loop(source, x_m, self.train_coeffs)
+        x_k = ddim_loop(self.step, x_m, self.train_coeffs)
+        mse = torch.nn.functional.mse_loss
+        out = {"distill": mse(x_k, target), "undistilled": mse(before, target), "span": mse(x_m, target)}
+        if self.distill_head > 0:  # the frozen head on both: (B, D, H, W) occupancy in [0, 1]
+            with torch.no_grad():
+                occ_target = _full_scale(self.head, target)[0]
+                out["undistilled_occ"] = mse(_full_scale(self.head, before)[0], occ_target)
+            out["distill_occ"] = mse(_full_scale(self.head, x_k)[0], occ_target)
+        out["loss"] = out["distill"] + self.distill_head * out.get("distill_occ", 0.0)
+        return out
 
     def _head_losses(self, batch: Batch) -> dict[str, Tensor]:
         """Eq. 7 on the student's own F_r^D (the training loop's T_m), the rest frozen: what

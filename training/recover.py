@@ -1,0 +1,174 @@
+"""Read an exported model's torch weights back out of its ONNX graphs: a checkpoint again.
+
+A model folder (``msdnet-export`` output) holds every weight the radar path uses, but not always
+under its torch name: the exporter's constant folding turns GroupNorm affines into ``onnx::Mul_*``
+/ ``onnx::Add_*`` tensors of shape (C, 1, 1) and the sparse-conv kernels into transposed
+``onnx::MatMul_*`` matrices. :func:`recover_model` finds where every element went without knowing
+those rules: it exports a *probe* model of the same config whose weights are the element indices
+themselves (``BASE + i``, exact in float32), so each folded initializer of the probe export
+names, element by element, the weight it came from; the shipped graph's initializer of the same
+name then gives that element's value. The result is checked by exporting the recovered model
+again: every initializer of every graph must equal the shipped one byte for byte.
+
+What no graph holds stays at its fresh initialisation and is listed (``Recovered.absent``): for a
+student, the frozen teacher's LiDAR encoder and S2D (the distillation target of full student
+training, which a recovered checkpoint therefore cannot do; ``--distill`` and ``--head-only``
+runs do not need it).
+
+``python -m msdnet.training.recover MODEL_DIR --out CKPT``.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import click
+import numpy as np
+import onnx
+import torch
+from onnx import numpy_helper
+
+from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.model.artifact import read_manifest
+from msdnet.training.checkpoint import CheckpointState, dataclass_from_dict, save_checkpoint
+from msdnet.training.config import ModelConfig, TrainConfig
+from msdnet.training.models import build_model
+
+BASE = 2**20  # first probe index: far above the small integer constants a graph holds
+LIMIT = 2**24  # float32 holds every integer below this exactly
+
+
+@dataclass(frozen=True)
+class Recovered:
+    """A model rebuilt from an artifact folder."""
+
+    model: torch.nn.Module  # weights read back, eval mode
+    cfg: ModelConfig  # the manifest's config
+    kind: str  # student | r2ldm
+    elements: int  # weight elements read back from the graphs
+    absent: tuple[str, ...]  # state_dict prefixes no graph holds (left at their fresh values)
+
+
+def _initializers(path: Path) -> dict[str, np.ndarray]:
+    model = onnx.load(str(path))
+    return {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+
+
+def _export(model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path) -> dict[str, dict]:
+    from msdnet.export.graphs import export_all
+
+    export_all(model, kind, cfg, folder)
+    return {p.name: _initializers(p) for p in sorted(folder.glob("*.onnx"))}
+
+
+def _float_entries(model: torch.nn.Module) -> list[tuple[str, torch.Tensor]]:
+    return [(k, v) for k, v in model.state_dict().items() if v.is_floating_point() and v.numel() > 0]
+
+
+def _module_of(key: str) -> str:
+    """``teacher.encoder.subm.0.conv.weight`` -> ``teacher.encoder``; heads keep one level more."""
+    parts = key.split(".")
+    return ".".join(parts[: 4 if parts[1:2] == ["head"] else 2])
+
+
+def recover_model(root: str | Path) -> Recovered:
+    """The torch model of the exported folder ``root``, its weights read back (module docstring)."""
+    root = Path(root)
+    manifest = read_manifest(root)
+    kind = manifest.get("model_kind")
+    if kind not in ("student", "r2ldm"):
+        raise MsdnetError(root / "manifest.json", f"cannot recover a {kind!r} model")
+    cfg = dataclass_from_dict(ModelConfig, manifest.get("config"), f"{root / 'manifest.json'}: config")
+    torch.manual_seed(0)
+    model, probe = build_model(kind, cfg).eval(), build_model(kind, cfg).eval()
+    entries = _float_entries(probe)
+    starts, total = [], BASE
+    with torch.no_grad():
+        for _, tensor in entries:  # the probe's weights: their own global element index
+            starts.append(total)
+            index = torch.arange(total, total + tensor.numel(), dtype=torch.float64)
+            tensor.copy_(index.reshape(tensor.shape))
+            total += tensor.numel()
+    if total >= LIMIT:
+        raise MsdnetError(root, f"{total - BASE} weight elements: more than the probe can index")
+    flat = [np.full(t.numel(), np.nan) for _, t in entries]  # recovered values, NaN = not seen
+    with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
+        probed = _export(probe, kind, cfg, Path(tmp))
+    for file, inits in probed.items():
+        if not (root / file).is_file():
+            continue  # an optional graph the folder does not carry
+        shipped = _initializers(root / file)
+        for name, index in inits.items():
+            if index.dtype != np.float32 or index.size == 0:
+                continue
+            ix = index.astype(np.float64).ravel()
+            if ix.min() < BASE or ix.max() >= total or not np.all(ix == np.round(ix)):
+                continue  # a constant of the graph, not a weight
+            if name not in shipped or shipped[name].shape != index.shape:
+                raise MsdnetError(root / file, f"initializer {name!r} differs from this msdnet's export")
+            which = np.searchsorted(starts, ix, side="right") - 1
+            if np.any(which != which[0]):
+                raise MsdnetError(root / file, f"initializer {name!r} mixes several weights")
+            j = int(which[0])
+            pos = (ix - starts[j]).astype(np.int64)
+            values = shipped[name].astype(np.float64).ravel()
+            seen = ~np.isnan(flat[j][pos])
+            if np.any(flat[j][pos][seen] != values[seen]):
+                raise MsdnetError(root / file, f"{entries[j][0]} differs between the graphs")
+            flat[j][pos] = values
+    state = model.state_dict()
+    absent: set[str] = set()
+    elements = 0
+    with torch.no_grad():
+        for (key, tensor), values in zip(entries, flat, strict=True):
+            got = ~np.isnan(values)
+            elements += int(got.sum())
+            if not got.any():
+                absent.add(_module_of(key))
+                continue
+            if not got.all():
+                raise MsdnetError(root, f"{key}: {int((~got).sum())} of {got.size} elements in no graph")
+            state[key].copy_(torch.from_numpy(values.reshape(tensor.shape)).to(state[key].dtype))
+    _check_same(model, kind, cfg, root)
+    return Recovered(model, cfg, kind, elements, tuple(sorted(absent)))
+
+
+def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path) -> None:
+    """Export ``model`` again: every initializer of each graph the folder has must be the same bytes."""
+    with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
+        again = _export(model, kind, cfg, Path(tmp))
+    for file, inits in again.items():
+        if not (root / file).is_file():
+            continue
+        shipped = _initializers(root / file)
+        for name, value in inits.items():
+            if name not in shipped or shipped[name].tobytes() != value.tobytes():
+                raise MsdnetError(root / file, f"re-exported initializer {name!r} differs: not recovered")
+
+
+def recover_checkpoint(root: str | Path, out: str | Path) -> tuple[Path, Recovered]:
+    """Write the recovered model of ``root`` as a checkpoint folder ``out``; -> (out, what was read)."""
+    rec = recover_model(root)
+    state = CheckpointState(kind=rec.kind, train=TrainConfig(), epochs=0, recovered_from=str(root))
+    return save_checkpoint(out, rec.model, rec.cfg, state), rec
+
+
+@click.command(context_settings={"help_option_names": ["-h", "--help"]})
+@click.argument("model_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--out", type=click.Path(path_type=Path), required=True, help="checkpoint folder to write")
+@one_line_errors
+def main(model_dir: Path, out: Path) -> None:
+    """Rebuild a checkpoint from the exported model MODEL_DIR (its ONNX graphs' weights)."""
+    if out.exists():
+        raise MsdnetError(out, "exists: choose another --out")
+    folder, rec = recover_checkpoint(model_dir, out)
+    click.echo(
+        f"{rec.kind}: {rec.elements:,} weight elements read back from {model_dir}, re-export identical"
+        f" -> {folder}; in no graph (fresh values): {', '.join(rec.absent) or 'none'}"
+    )
+
+
+if __name__ == "__main__":
+    main()
