@@ -21,7 +21,7 @@ import torch
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import collate
-from msdnet.training.checkpoint import CheckpointState, config_diff, load_checkpoint, read_checkpoint
+from msdnet.training.checkpoint import config_diff, load_checkpoint, read_checkpoint
 from msdnet.training.config import (
     MODEL_PRESETS,
     R2LDM_LR,
@@ -415,6 +415,11 @@ def main(
         cfg = replace(
             cfg, train_sample_steps=loop_steps, diffusion=replace(cfg.diffusion, sample_steps=loop_steps)
         )
+    if init is not None and read_checkpoint(init)[2].recovered_from and not (head_only or distill_steps):
+        raise MsdnetError(
+            init,
+            "was read back from an exported model (no teacher LiDAR branch): --distill or --head-only only",
+        )
     if tcfg.distill_steps:
         cfg = _distill_config(init if init is not None else out / "last", cfg.train_sample_steps, tcfg)
     for name in ablate:
@@ -540,12 +545,6 @@ def _init_model(
     return model
 
 
-def _recovered(spec: RunSpec) -> CheckpointState | None:
-    """The state of the checkpoint this run starts from (--init, or OUT/last on resume)."""
-    path = Path(spec.init) if spec.init else spec.out / "last" if spec.resume else None
-    return read_checkpoint(path)[2] if path is not None else None
-
-
 def _run(
     spec: RunSpec,
     cfg: ModelConfig,
@@ -574,11 +573,6 @@ def _run(
         model.step.requires_grad_(True)
         source_step = load_checkpoint(Path(source))[0].step
         model.enable_distillation(source_step, tcfg.distill_steps, tcfg.distill_head)
-    elif getattr(_recovered(spec), "recovered_from", None) and not tcfg.head_only:
-        raise MsdnetError(
-            spec.init,
-            "was read back from an exported model (no teacher LiDAR branch): --distill or --head-only only",
-        )
     metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)
     if info.is_main:

@@ -56,11 +56,45 @@ def _initializers(path: Path) -> dict[str, np.ndarray]:
     return {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
 
 
-def _export(model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path) -> dict[str, dict]:
+def _slots(path: Path) -> dict[tuple[str, int], str]:
+    """(node name, input slot) -> the initializer it reads. Initializer names differ between
+    exports where the exporter merged equal tensors (a fresh model's GroupNorm affines are all
+    ones, and it reads the copies through Identity nodes); the scoped node names do not."""
+    graph = onnx.load(str(path)).graph
+    source = {i.name: i.name for i in graph.initializer}
+    for n in graph.node:  # Identity(initializer): the exporter's merged copies
+        if n.op_type == "Identity" and n.input[0] in source:
+            source[n.output[0]] = source[n.input[0]]
+    return {
+        (n.name, k): source[x]
+        for n in graph.node
+        if n.op_type != "Identity"
+        for k, x in enumerate(n.input)
+        if x in source
+    }
+
+
+def _consumers(path: Path) -> dict[str, tuple[str, int]]:
+    """initializer name -> (the first node reading it, input slot)."""
+    first: dict[str, tuple[str, int]] = {}
+    for slot, name in _slots(path).items():
+        first.setdefault(name, slot)
+    return first
+
+
+def _export(
+    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path
+) -> dict[str, tuple[dict[str, np.ndarray], dict[str, tuple[str, int]]]]:
+    """file -> (initializers, their consumers) of ``model``'s export."""
     from msdnet.export.graphs import export_all
 
     export_all(model, kind, cfg, folder)
-    return {p.name: _initializers(p) for p in sorted(folder.glob("*.onnx"))}
+    return {p.name: (_initializers(p), _consumers(p)) for p in sorted(folder.glob("*.onnx"))}
+
+
+def _shipped(path: Path) -> tuple[dict[str, np.ndarray], dict[tuple[str, int], str]]:
+    """(initializers, (node, slot) -> initializer name) of a shipped graph."""
+    return _initializers(path), _slots(path)
 
 
 def _float_entries(model: torch.nn.Module) -> list[tuple[str, torch.Tensor]]:
@@ -96,24 +130,26 @@ def recover_model(root: str | Path) -> Recovered:
     flat = [np.full(t.numel(), np.nan) for _, t in entries]  # recovered values, NaN = not seen
     with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
         probed = _export(probe, kind, cfg, Path(tmp))
-    for file, inits in probed.items():
+    for file, (inits, consumers) in probed.items():
         if not (root / file).is_file():
             continue  # an optional graph the folder does not carry
-        shipped = _initializers(root / file)
+        shipped, slots = _shipped(root / file)
         for name, index in inits.items():
             if index.dtype != np.float32 or index.size == 0:
                 continue
             ix = index.astype(np.float64).ravel()
             if ix.min() < BASE or ix.max() >= total or not np.all(ix == np.round(ix)):
                 continue  # a constant of the graph, not a weight
-            if name not in shipped or shipped[name].shape != index.shape:
-                raise MsdnetError(root / file, f"initializer {name!r} differs from this msdnet's export")
+            there = slots.get(consumers.get(name, ("", -1)))
+            if there is None or shipped[there].shape != index.shape:
+                node = consumers.get(name, ("?", 0))[0]
+                raise MsdnetError(root / file, f"weight {name!r} of {node!r} is not this msdnet's export")
             which = np.searchsorted(starts, ix, side="right") - 1
             if np.any(which != which[0]):
                 raise MsdnetError(root / file, f"initializer {name!r} mixes several weights")
             j = int(which[0])
             pos = (ix - starts[j]).astype(np.int64)
-            values = shipped[name].astype(np.float64).ravel()
+            values = shipped[there].astype(np.float64).ravel()
             seen = ~np.isnan(flat[j][pos])
             if np.any(flat[j][pos][seen] != values[seen]):
                 raise MsdnetError(root / file, f"{entries[j][0]} differs between the graphs")
@@ -139,12 +175,13 @@ def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path)
     """Export ``model`` again: every initializer of each graph the folder has must be the same bytes."""
     with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
         again = _export(model, kind, cfg, Path(tmp))
-    for file, inits in again.items():
+    for file, (inits, consumers) in again.items():
         if not (root / file).is_file():
             continue
-        shipped = _initializers(root / file)
+        shipped, slots = _shipped(root / file)
         for name, value in inits.items():
-            if name not in shipped or shipped[name].tobytes() != value.tobytes():
+            there = slots.get(consumers.get(name, ("", -1)))
+            if there is None or shipped[there].tobytes() != value.tobytes():
                 raise MsdnetError(root / file, f"re-exported initializer {name!r} differs: not recovered")
 
 
