@@ -102,6 +102,11 @@ def test_distillation_trains_only_the_denoiser_toward_the_long_loop(recovered, a
     moved = {k for k in before if not torch.equal(before[k], after[k])}
     assert moved and all(k.startswith("step.denoiser.") for k in moved)
     assert (cfg.train_sample_steps, cfg.diffusion.sample_steps, state.train.distill_steps) == (1, 1, 8)
+    from msdnet.training.cli import _init_model
+
+    with one_torch_thread():  # the run's model loops K = 1 times, not --init's T_m
+        model = _init_model(recovered, "student", cfg, None, distill=True)
+    assert len(model.train_coeffs) == 1 and read_checkpoint(recovered)[1].train_sample_steps > 1
     epochs = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     last = [e for e in epochs if e["event"] == "epoch"][-1]
     # on the held-out frame (same noise every epoch): closer to the 8-step loop than before (-25 %)

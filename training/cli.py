@@ -528,8 +528,8 @@ def _init_model(
     if kind != "teacher" and teacher is None and icfg.head_kind != cfg.head_kind:
         raise MsdnetError(folder, f"the head is the teacher's: --head {cfg.head_kind} needs --teacher")
     old = load_checkpoint(folder)[0]
-    if teacher is None and icfg.head_kind == cfg.head_kind:
-        return old
+    if teacher is None and icfg.head_kind == cfg.head_kind and not distill:
+        return old  # (--distill: rebuilt below, so the loop runs the run's T_m, not --init's)
     model = build_model(kind, cfg, teacher=teacher)
     dst = model.state_dict()
     take = {
