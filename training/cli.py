@@ -10,6 +10,7 @@ Writes ``OUT/last``, ``OUT/best`` (checkpoints) and ``OUT/log.jsonl``; ``--resum
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import os
 from dataclasses import replace
@@ -567,11 +568,13 @@ def _run(
         model.requires_grad_(False)
         model.teacher.head.requires_grad_(True)
         model.head_only = True
-    if tcfg.distill_steps:  # the loop of the --init checkpoint (also on resume), frozen
-        source = spec.init or read_checkpoint(spec.out / "last")[2].init
+    if tcfg.distill_steps:  # the loop of the --init checkpoint (on resume: read again), frozen
+        if spec.init is not None:  # the model holds --init's weights now
+            source_step = copy.deepcopy(model.step)
+        else:
+            source_step = load_checkpoint(Path(read_checkpoint(spec.out / "last")[2].init))[0].step
         model.requires_grad_(False)
         model.step.requires_grad_(True)
-        source_step = load_checkpoint(Path(source))[0].step
         model.enable_distillation(source_step, tcfg.distill_steps, tcfg.distill_head)
     metrics = partial(occupancy_counts, modality="lidar" if spec.kind == "teacher" else "radar")
     state = train(model, cfg, tcfg, train_set, val_set, spec, partial(collate, cfg=cfg), info, metrics)

@@ -248,23 +248,26 @@ class StudentModel(_FrozenTeacherMixin):
 
     def _distill_losses(self, batch: Batch) -> dict[str, Tensor]:
         """{"loss", "distill": MSE of the K-step F_r^D to the N-step one, "distill_occ": the same for the
-        full-scale occupancy the head decodes (with ``distill_head``); diagnostics "undistilled"
-        (the frozen loop at K steps against its own N steps; "undistilled_occ") and "span" (x_m
-        against N steps)}."""
+        full-scale occupancy the head decodes (with ``distill_head``), "span" (x_m against N steps);
+        in eval mode (validation) also "undistilled" (the frozen loop at K steps against its own
+        N steps; "undistilled_occ"), kept off the training steps: K more steps and a head call}."""
         assert self._distill_from is not None
         source, coeffs = self._distill_from
         with torch.no_grad():
             f_r = self.reconstructed(batch.radar)
             x_m = self.adapter(f_r, torch.randn_like(f_r))  # Eq. 12
             target = ddim_loop(source, x_m, coeffs)  # (B, C, H8, W8) the N-step loop
-            before = ddim_loop(source, x_m, self.train_coeffs)
+            before = None if self.training else ddim_loop(source, x_m, self.train_coeffs)
         x_k = ddim_loop(self.step, x_m, self.train_coeffs)
         mse = torch.nn.functional.mse_loss
-        out = {"distill": mse(x_k, target), "undistilled": mse(before, target), "span": mse(x_m, target)}
+        out = {"distill": mse(x_k, target), "span": mse(x_m, target)}
+        if before is not None:
+            out["undistilled"] = mse(before, target)
         if self.distill_head > 0:  # the frozen head on both: (B, D, H, W) occupancy in [0, 1]
             with torch.no_grad():
                 occ_target = _full_scale(self.head, target)[0]
-                out["undistilled_occ"] = mse(_full_scale(self.head, before)[0], occ_target)
+                if before is not None:
+                    out["undistilled_occ"] = mse(_full_scale(self.head, before)[0], occ_target)
             out["distill_occ"] = mse(_full_scale(self.head, x_k)[0], occ_target)
         out["loss"] = out["distill"] + self.distill_head * out.get("distill_occ", 0.0)
         return out

@@ -6,8 +6,9 @@ under its torch name: the exporter's constant folding turns GroupNorm affines in
 ``onnx::MatMul_*`` matrices. :func:`recover_model` finds where every element went without knowing
 those rules: it exports a *probe* model of the same config whose weights are the element indices
 themselves (``BASE + i``, exact in float32), so each folded initializer of the probe export
-names, element by element, the weight it came from; the shipped graph's initializer of the same
-name then gives that element's value. The result is checked by exporting the recovered model
+names, element by element, the weight it came from; the shipped graph's initializer read by the
+same node input (node names are scoped and stable; initializer names are not where the exporter
+merged equal tensors) then gives that element's value. The result is checked by exporting the recovered model
 again: every initializer of every graph must equal the shipped one byte for byte.
 
 What no graph holds stays at its fresh initialisation and is listed (``Recovered.absent``): for a
@@ -51,33 +52,31 @@ class Recovered:
     absent: tuple[str, ...]  # state_dict prefixes no graph holds (left at their fresh values)
 
 
-def _initializers(path: Path) -> dict[str, np.ndarray]:
-    model = onnx.load(str(path))
-    return {i.name: numpy_helper.to_array(i) for i in model.graph.initializer}
+Slots = dict[tuple[str, int], str]  # (node name, input slot) -> the initializer it reads
 
 
-def _slots(path: Path) -> dict[tuple[str, int], str]:
-    """(node name, input slot) -> the initializer it reads. Initializer names differ between
-    exports where the exporter merged equal tensors (a fresh model's GroupNorm affines are all
-    ones, and it reads the copies through Identity nodes); the scoped node names do not."""
+def _read_graph(path: Path) -> tuple[dict[str, np.ndarray], Slots]:
+    """(initializers by name, slots) of one ONNX file. The exporter reads merged equal tensors (a
+    fresh model's GroupNorm affines are all ones) through Identity nodes: slots see through them."""
     graph = onnx.load(str(path)).graph
     source = {i.name: i.name for i in graph.initializer}
     for n in graph.node:  # Identity(initializer): the exporter's merged copies
         if n.op_type == "Identity" and n.input[0] in source:
             source[n.output[0]] = source[n.input[0]]
-    return {
+    slots = {
         (n.name, k): source[x]
         for n in graph.node
         if n.op_type != "Identity"
         for k, x in enumerate(n.input)
         if x in source
     }
+    return {i.name: numpy_helper.to_array(i) for i in graph.initializer}, slots
 
 
-def _consumers(path: Path) -> dict[str, tuple[str, int]]:
-    """initializer name -> (the first node reading it, input slot)."""
+def _first_reader(slots: Slots) -> dict[str, tuple[str, int]]:
+    """initializer name -> the first (node name, input slot) reading it."""
     first: dict[str, tuple[str, int]] = {}
-    for slot, name in _slots(path).items():
+    for slot, name in slots.items():
         first.setdefault(name, slot)
     return first
 
@@ -85,16 +84,12 @@ def _consumers(path: Path) -> dict[str, tuple[str, int]]:
 def _export(
     model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path
 ) -> dict[str, tuple[dict[str, np.ndarray], dict[str, tuple[str, int]]]]:
-    """file -> (initializers, their consumers) of ``model``'s export."""
+    """file -> (initializers, the first reader of each) of ``model``'s export."""
     from msdnet.export.graphs import export_all
 
     export_all(model, kind, cfg, folder)
-    return {p.name: (_initializers(p), _consumers(p)) for p in sorted(folder.glob("*.onnx"))}
-
-
-def _shipped(path: Path) -> tuple[dict[str, np.ndarray], dict[tuple[str, int], str]]:
-    """(initializers, (node, slot) -> initializer name) of a shipped graph."""
-    return _initializers(path), _slots(path)
+    graphs = {p.name: _read_graph(p) for p in sorted(folder.glob("*.onnx"))}
+    return {file: (inits, _first_reader(slots)) for file, (inits, slots) in graphs.items()}
 
 
 def _float_entries(model: torch.nn.Module) -> list[tuple[str, torch.Tensor]]:
@@ -133,7 +128,7 @@ def recover_model(root: str | Path) -> Recovered:
     for file, (inits, consumers) in probed.items():
         if not (root / file).is_file():
             continue  # an optional graph the folder does not carry
-        shipped, slots = _shipped(root / file)
+        shipped, slots = _read_graph(root / file)
         for name, index in inits.items():
             if index.dtype != np.float32 or index.size == 0:
                 continue
@@ -178,7 +173,7 @@ def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path)
     for file, (inits, consumers) in again.items():
         if not (root / file).is_file():
             continue
-        shipped, slots = _shipped(root / file)
+        shipped, slots = _read_graph(root / file)
         for name, value in inits.items():
             there = slots.get(consumers.get(name, ("", -1)))
             if there is None or shipped[there].tobytes() != value.tobytes():
