@@ -40,7 +40,7 @@ from msdnet.runtime.engine.decode import decode_packed, decode_sparse, packed_sh
 from msdnet.runtime.engine.kernels import warmup as numba_warmup
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
-from msdnet.runtime.engine.session import AUTO, create_session, device_of
+from msdnet.runtime.engine.session import AUTO, base_provider, create_session, device_of, precision_of
 from msdnet.runtime.engine.voxelize import in_range_mask, voxelize
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
@@ -72,7 +72,7 @@ class Pipeline:
 
     def __init__(self, artifact: Artifact, provider: str = "cpu", threads: int | None = None):
         self.artifact = artifact  # checked manifest + graph bytes
-        self.provider = provider  # short provider name (cpu, auto, openvino, cuda, tensorrt)
+        self.provider = provider  # short provider name (cpu, auto[-bf16], openvino[-bf16], cuda, tensorrt)
         self.kind = artifact.kind  # "student" or "r2ldm"
         self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
         self.sessions: dict[str, ort.InferenceSession] = {}
@@ -102,10 +102,10 @@ class Pipeline:
         self._renoise: np.ndarray | None = None  # (K, 2) [a, b] of the last coefficients() call
         self._allocate(device_of(provider))
         self.auto: AutoReport | None = None  # provider "auto": each graph's engine, its times and why
-        if provider.strip().lower() == AUTO:
+        if base_provider(provider) == AUTO:
             from msdnet.runtime.engine.provider_auto import choose_engines
 
-            self.auto = choose_engines(self, threads_of)  # may swap sessions for OpenVINO's
+            self.auto = choose_engines(self, threads_of, precision_of(provider))  # may swap sessions for OpenVINO's
             self._allocate(device_of(provider))  # so bind the buffers again
 
     @classmethod

@@ -1,6 +1,7 @@
 """Graph sessions: onnxruntime execution providers by short name, intra-op threads, no spinning;
 and ``openvino``: OpenVINO runs every graph it can load, onnxruntime's CPU provider the rest;
-``auto``: per graph, whichever of the two measured faster here (``runtime.engine.provider_auto``).
+``auto``: per graph, whichever of the two measured faster here (``runtime.engine.provider_auto``);
+``openvino-bf16`` and ``auto-bf16``: the same with OpenVINO computing in bfloat16 (``BF16`` below).
 
 onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve the numba
 voxelizer between graph calls, so spinning is always off (``session.intra_op.allow_spinning``).
@@ -32,13 +33,40 @@ AUTO = (
 # OpenVINO's per-call cost made the loop 1.06-2x slower in every preset) stay on onnxruntime, so
 # does rgfd_adapter.onnx (DeformConv: OpenVINO cannot load it).
 OPENVINO_GRAPHS = ("recon_head.onnx", "recon_head_sparse.onnx")
+# bfloat16 variants: OpenVINO compiles with INFERENCE_PRECISION_HINT bf16 (f32 inputs and outputs,
+# bf16 matmuls and convolutions; about 3 significant digits). They need a CPU whose OpenVINO
+# capabilities list BF16 (AVX512-BF16 or AMX). ``openvino-bf16`` runs every graph OpenVINO can load
+# (in bf16 the encoder and step graph gain too); ``auto-bf16`` picks per graph between onnxruntime
+# (f32) and OpenVINO bf16. Opt-in: outputs are not within the f32 export tolerances, and
+# ``msdnet-bench steps --provider auto-bf16`` measures what it costs in CD and F-score.
+BF16 = "-bf16"
+OPENVINO_BF16, AUTO_BF16 = OPENVINO + BF16, AUTO + BF16
+
+
+def base_provider(provider: str) -> str:
+    """The provider without its precision: ``auto-bf16`` -> ``auto``, ``cpu`` -> ``cpu``."""
+    name = provider.strip().lower()
+    return name[: -len(BF16)] if name in (OPENVINO_BF16, AUTO_BF16) else name
+
+
+def precision_of(provider: str) -> str:
+    """``bf16`` for the bfloat16 providers, else ``f32``."""
+    return "bf16" if provider.strip().lower() in (OPENVINO_BF16, AUTO_BF16) else "f32"
+
+
+def openvino_has_bf16() -> bool:
+    """Whether OpenVINO's CPU plugin lists BF16 among its optimization capabilities here."""
+    import openvino as ov
+
+    return "BF16" in ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
 
 
 def available_providers() -> list[str]:
     """Short names of the providers this onnxruntime build offers (``cpu`` and ``auto`` always)."""
     have = set(ort.get_available_providers())
     names = [name for name, full in PROVIDERS.items() if full in have]
-    return names + ([OPENVINO] if importlib.util.find_spec("openvino") is not None else []) + [AUTO]
+    ov = [OPENVINO, OPENVINO_BF16] if importlib.util.find_spec("openvino") is not None else []
+    return names + ov + [AUTO] + ([AUTO_BF16] if ov else [])
 
 
 def resolve_providers(provider: str) -> list[str]:
@@ -49,9 +77,11 @@ def resolve_providers(provider: str) -> list[str]:
     """
     name = provider.strip().lower()
     have = available_providers()
-    if name == OPENVINO and name not in have:
-        raise MsdnetError("provider", "openvino needs the OpenVINO runtime: pip install 'msdnet[openvino]'")
-    if name in (OPENVINO, AUTO):  # the graphs OpenVINO cannot load (or loses) run on the CPU provider
+    if name in (OPENVINO, OPENVINO_BF16, AUTO_BF16) and name not in have:
+        raise MsdnetError("provider", f"{name} needs the OpenVINO runtime: pip install 'msdnet[openvino]'")
+    if precision_of(name) == "bf16" and not openvino_has_bf16():
+        raise MsdnetError("provider", f"{name}: this CPU has no bfloat16 support in OpenVINO (no BF16 capability)")
+    if name in (OPENVINO, AUTO, OPENVINO_BF16, AUTO_BF16):  # the graphs OpenVINO cannot load (or loses) run on the CPU provider
         return [PROVIDERS["cpu"]]
     if name not in PROVIDERS or name not in have:
         raise MsdnetError(
@@ -68,7 +98,7 @@ def resolve_providers(provider: str) -> list[str]:
 
 def device_of(provider: str) -> str:
     """OrtValue device type for buffers that live next to ``provider``'s kernels."""
-    return "cpu" if provider.strip().lower() in ("cpu", OPENVINO, AUTO) else "cuda"
+    return "cpu" if base_provider(provider) in ("cpu", OPENVINO, AUTO) else "cuda"
 
 
 def session_options(threads: int | None = None) -> ort.SessionOptions:
@@ -93,16 +123,18 @@ def create_session(model: bytes, name: str | Path, provider: str = "cpu", thread
     Sessions are built from bytes so the file checked is exactly the file run. ``name`` is only
     used in error messages. ``provider`` ``openvino``: an :class:`OpenVinoSession` (same API
     subset) for the ``OPENVINO_GRAPHS`` (``name`` is the file name) when OpenVINO can load them,
-    else onnxruntime on the CPU; ``get_providers()`` says which.
+    else onnxruntime on the CPU; ``openvino-bf16``: the same for every graph, in bfloat16;
+    ``get_providers()`` says which.
     """
     providers = resolve_providers(provider)
-    if provider.strip().lower() == OPENVINO and Path(str(name)).name in OPENVINO_GRAPHS:
+    name_l = provider.strip().lower()
+    if (name_l == OPENVINO and Path(str(name)).name in OPENVINO_GRAPHS) or name_l == OPENVINO_BF16:
         from msdnet.runtime.engine.openvino_session import OpenVinoSession
 
         if threads is not None and threads < 1:
             raise MsdnetError("threads", f"must be >= 1, got {threads}")
         try:
-            return OpenVinoSession(model, threads)
+            return OpenVinoSession(model, threads, precision_of(name_l))
         except Exception:  # noqa: BLE001 - any conversion failure: this graph stays on onnxruntime
             pass
     try:
