@@ -20,7 +20,12 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--head", type=click.Choice(["dense", "sparse"]), help="Recon head of random models [dense].")
 @click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
-@click.option("--provider", default="cpu", show_default=True, help="cpu, auto, openvino, cuda or tensorrt.")
+@click.option(
+    "--provider",
+    default="cpu",
+    show_default=True,
+    help="cpu, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+)
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
 @click.option("--repeats", type=click.IntRange(min=1), help="Timed MSDNet frames [30; quick 3].")
 @click.option("--warmup", type=click.IntRange(min=0), help="Untimed frames first [3; quick 1].")

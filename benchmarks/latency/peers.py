@@ -11,6 +11,9 @@ Engines:
   (``runtime.engine.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
   reported with the reason;
+- ``openvino_bf16``: the same compiled in bfloat16 (``--provider openvino-bf16``), on CPUs whose
+  OpenVINO lists BF16 (else reported with the reason): the peer to beat when ours runs
+  ``--provider auto-bf16``;
 - ``torch_eager``: the torch modules the graphs were exported from (``export.graphs.graph_modules``:
   the checkpoint's weights, or the random weights of the exported random model),
   ``torch.set_num_threads(threads)``, ``inference_mode``;
@@ -20,7 +23,8 @@ Every repeat runs each engine once per stage, interleaved (the order rotated per
 see the same load. A peer's
 total is the sum of its stage medians, with onnxruntime's median standing in for a stage it cannot
 run (listed in ``substituted``). ``engine_over_best_peer`` = ours / the fastest peer, per stage and
-for the total (<= 1: ours is the fastest).
+for the total (<= 1: ours is the fastest); ``engine_over_best_f32_peer`` the same against the
+full-precision peers only.
 """
 
 from __future__ import annotations
@@ -38,7 +42,8 @@ from msdnet.runtime.engine.provider_auto import failure_reason
 from msdnet.runtime.model import onnx_spec
 from msdnet.training.batch import make_encoder_input
 
-ENGINES = ("onnxruntime", "openvino", "torch_eager", "torch_compile")
+ENGINES = ("onnxruntime", "openvino", "openvino_bf16", "torch_eager", "torch_compile")
+REDUCED_PRECISION = ("openvino_bf16",)  # peers that do not compute in f32
 Feeds = list[dict[str, np.ndarray]]  # one dict per graph call, contract input names -> arrays
 
 
@@ -87,10 +92,16 @@ def _onnxruntime(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds) -> Cal
     return run
 
 
-def _openvino(pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds, threads: int) -> Callable[[], None]:
+def _openvino(
+    pipe: Pipeline, spec: onnx_spec.GraphSpec, feeds: Feeds, threads: int, precision: str = "f32"
+) -> Callable[[], None]:
     from msdnet.runtime.engine.openvino_session import OpenVinoSession
+    from msdnet.runtime.engine.session import openvino_has_bf16
 
-    sess = OpenVinoSession(pipe.artifact.graphs[spec.file], threads)  # f32, as --provider openvino
+    if precision == "bf16" and not openvino_has_bf16():
+        raise RuntimeError("OpenVINO has no bfloat16 on this CPU (no BF16 capability)")
+    # as --provider openvino (f32) or openvino-bf16
+    sess = OpenVinoSession(pipe.artifact.graphs[spec.file], threads, precision)
 
     def run() -> None:
         for f in feeds:
@@ -139,6 +150,9 @@ def peer_comparison(
             makers: dict[str, Callable[[], Callable[[], None]]] = {
                 "onnxruntime": lambda spec=spec, stage=stage: _onnxruntime(pipe, spec, feeds[stage]),
                 "openvino": lambda spec=spec, stage=stage: _openvino(pipe, spec, feeds[stage], threads),
+                "openvino_bf16": lambda spec=spec, stage=stage: _openvino(
+                    pipe, spec, feeds[stage], threads, "bf16"
+                ),
             }
             if spec.file in mods:
                 mod = mods[spec.file]
@@ -213,6 +227,8 @@ def _table(
     ours = totals.get("onnxruntime", {}).get("median_ms", float("nan"))
     peer_totals = {e: t["median_ms"] for e, t in totals.items() if e != "onnxruntime"}
     best = min(peer_totals, key=peer_totals.get) if peer_totals else None
+    f32 = {e: v for e, v in peer_totals.items() if e not in REDUCED_PRECISION}
+    best_f32 = min(f32, key=f32.get) if f32 else None
     return {
         "threads": threads,
         "repeats": repeats,
@@ -220,4 +236,6 @@ def _table(
         "totals": totals,
         "best_peer": best,
         "engine_over_best_peer": ours / peer_totals[best] if best else float("nan"),
+        "best_f32_peer": best_f32,
+        "engine_over_best_f32_peer": ours / f32[best_f32] if best_f32 else float("nan"),
     }

@@ -198,7 +198,12 @@ def run_steps(
 @click.option("--max-frames", type=click.IntRange(min=1), help="Score this many frames, spread evenly.")
 @click.option("--threshold", type=click.FloatRange(0, 1, min_open=True, max_open=True), help="Occupancy.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
-@click.option("--provider", default="cpu", show_default=True, help="cpu, auto, openvino, cuda or tensorrt.")
+@click.option(
+    "--provider",
+    default="cpu",
+    show_default=True,
+    help="cpu, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+)
 @click.option("--seed", type=int, default=0, show_default=True, help="Diffusion noise seed.")
 @one_line_errors
 def steps_command(steps_text: str, **opts: Any) -> None:

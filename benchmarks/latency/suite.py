@@ -279,6 +279,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "step_flops_over_peak": main["step_graph"]["flops_over_peak"],
             "head_over_dense_head": head.get("head_over_dense_head", float("nan")),
             "engine_over_best_peer": peers.get("engine_over_best_peer", float("nan")),
+            "engine_over_best_f32_peer": peers.get("engine_over_best_f32_peer", float("nan")),
         },
         "head": {**head, "gate_note": gate_note},
         "peers": peers,

@@ -110,7 +110,7 @@ class OpenVinoSession:
 
     def _infer(self, feeds: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         ordered = [np.ascontiguousarray(feeds[i.name]) for i in self._inputs]  # by position
-        self._request.infer(ordered, share_inputs=True)  # synchronous: ``ordered`` outlives the call
+        self._request.infer(ordered)
         return {o.name: self._request.get_output_tensor(k).data.copy() for k, o in enumerate(self._outputs)}
 
     def run(self, output_names: list[str] | None, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:

@@ -105,7 +105,8 @@ class Pipeline:
         if base_provider(provider) == AUTO:
             from msdnet.runtime.engine.provider_auto import choose_engines
 
-            self.auto = choose_engines(self, threads_of, precision_of(provider))  # may swap sessions for OpenVINO's
+            # may swap sessions for OpenVINO's
+            self.auto = choose_engines(self, threads_of, precision_of(provider))
             self._allocate(device_of(provider))  # so bind the buffers again
 
     @classmethod

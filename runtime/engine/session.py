@@ -80,8 +80,9 @@ def resolve_providers(provider: str) -> list[str]:
     if name in (OPENVINO, OPENVINO_BF16, AUTO_BF16) and name not in have:
         raise MsdnetError("provider", f"{name} needs the OpenVINO runtime: pip install 'msdnet[openvino]'")
     if precision_of(name) == "bf16" and not openvino_has_bf16():
-        raise MsdnetError("provider", f"{name}: this CPU has no bfloat16 support in OpenVINO (no BF16 capability)")
-    if name in (OPENVINO, AUTO, OPENVINO_BF16, AUTO_BF16):  # the graphs OpenVINO cannot load (or loses) run on the CPU provider
+        raise MsdnetError("provider", f"{name}: OpenVINO has no bfloat16 on this CPU (no BF16 capability)")
+    # the graphs OpenVINO cannot load (or loses) run on the CPU provider
+    if name in (OPENVINO, AUTO, OPENVINO_BF16, AUTO_BF16):
         return [PROVIDERS["cpu"]]
     if name not in PROVIDERS or name not in have:
         raise MsdnetError(

@@ -22,6 +22,8 @@ N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --work
 ``--provider auto`` (``runtime/engine/provider_auto``) runs each graph on whichever of onnxruntime and
 OpenVINO measured faster here, measured once per model, CPU and library versions and cached;
 ``-v`` prints the picks and times. Its outputs are within the export tolerances of ``cpu``'s.
+``--provider auto-bf16`` lets OpenVINO compute in bfloat16 (CPUs with bf16 units): not within those
+tolerances; on the Astyx selection slice it changed CD, MHD and F@0.5 by under 0.2 % (docs/training.md).
 
 ``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/frontends/infer/dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
@@ -86,10 +88,11 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
     "--provider",
     default="cpu",
     show_default=True,
-    help="cpu (byte-reproducible), auto (per graph the faster of onnxruntime and OpenVINO), openvino, "
+    help="cpu (byte-reproducible), auto (per graph the faster of onnxruntime and OpenVINO), auto-bf16 "
+    "(the same with OpenVINO in bfloat16: fastest on CPUs with bf16 units), openvino, openvino-bf16, "
     "cuda or tensorrt.",
 )
-@click.option("-v", "--verbose", is_flag=True, help="With --provider auto: print each graph's engine.")
+@click.option("-v", "--verbose", is_flag=True, help="With --provider auto[-bf16]: print each graph's engine.")
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
 @click.option(
     "--dataset",
@@ -241,7 +244,7 @@ def main(
 def _announce_auto(artifact: Any, provider: str, threads: int | None, verbose: bool) -> Any:
     """``--provider auto``: pick each graph's engine once, here (measured, or read from the cache the
     workers then read too); ``-v`` prints the picks. -> that Pipeline, None for other providers."""
-    if provider.strip().lower() != "auto":
+    if provider.strip().lower() not in ("auto", "auto-bf16"):
         return None
     from msdnet.runtime.engine.pipeline import Pipeline
 

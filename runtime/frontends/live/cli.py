@@ -37,7 +37,12 @@ from msdnet.runtime.errors import MsdnetError, one_line_errors
     help="DDS domain (ROS_DOMAIN_ID).",
 )
 @click.option("--model", type=click.Path(path_type=Path), help="msdnet-export folder [bundled].")
-@click.option("--provider", default="cpu", show_default=True, help="cpu, openvino, cuda or tensorrt.")
+@click.option(
+    "--provider",
+    default="cpu",
+    show_default=True,
+    help="cpu, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+)
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads.")
 @click.option(
     "--field", "fields", multiple=True, metavar="COLUMN=FIELD", help="Map a model column to a field."
