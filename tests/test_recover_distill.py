@@ -125,3 +125,22 @@ def test_distillation_options_are_checked(recovered, exported, astyx_root, tmp_p
         r = CliRunner().invoke(train_main, _args(astyx_root, recovered, tmp_path / "x", *extra))
         assert r.exit_code == 2 and message in r.output and "Traceback" not in r.output, (extra, r.output)
     assert read_checkpoint(exported[0])[2].recovered_from is None
+
+
+def test_recover_records_the_training_split_for_split_select(exported, astyx_root, tmp_path):
+    from msdnet.benchmarks.stages import split_frames
+    from msdnet.training.checkpoint import load_checkpoint
+
+    out = tmp_path / "split"
+    args = [str(exported[1]), "--out", str(out), "--dataset", "astyx", "--data", str(astyx_root)]
+    with one_torch_thread():
+        r = CliRunner().invoke(recover_main, args)
+    assert r.exit_code == 0, r.output
+    record = load_checkpoint(out)[2].dataset
+    first, last, n = record["val_frames"]
+    fit_first, fit_last, n_fit = record["train_frames"]
+    assert record["holdout"] == 0.15 and n == round(0.15 * (n + n_fit)) and fit_last < first
+    _, ids = split_frames(record, "astyx", astyx_root, "select", None)
+    assert (ids[0], ids[-1], len(ids)) == (first, last, n)  # what --split select then scores
+    r = CliRunner().invoke(recover_main, [str(exported[1]), "--out", str(tmp_path / "o"), "--dataset", "sim"])
+    assert r.exit_code == 2 and "go together" in r.output and "Traceback" not in r.output

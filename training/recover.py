@@ -16,7 +16,10 @@ student, the frozen teacher's LiDAR encoder and S2D (the distillation target of 
 training, which a recovered checkpoint therefore cannot do; ``--distill`` and ``--head-only``
 runs do not need it).
 
-``python -m msdnet.training.recover MODEL_DIR --out CKPT``.
+``python -m msdnet.training.recover MODEL_DIR --out CKPT [--dataset D --data ROOT --holdout H]``:
+with a dataset the checkpoint also records the training range and selection slice the model was
+trained with (``--holdout``: the run's, 0.15 by default as in ``msdnet-train``), so that
+``msdnet-bench steps --split select --checkpoint CKPT`` scores the same held-out frames.
 """
 
 from __future__ import annotations
@@ -180,22 +183,54 @@ def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path)
                 raise MsdnetError(root / file, f"re-exported initializer {name!r} differs: not recovered")
 
 
-def recover_checkpoint(root: str | Path, out: str | Path) -> tuple[Path, Recovered]:
-    """Write the recovered model of ``root`` as a checkpoint folder ``out``; -> (out, what was read)."""
+def split_record(dataset: str, data: Path, cfg: ModelConfig, holdout: float) -> dict[str, object]:
+    """The ``state.dataset`` record ``msdnet-train`` writes: the fitted range and the selection slice
+    (first id, last id, count) of ``data`` under ``holdout``."""
+    from msdnet.training.data import make_splits
+
+    fit, select = make_splits(dataset, data, cfg, holdout=holdout)
+    return {
+        "name": dataset,
+        "root": str(Path(data).resolve()),
+        "train_frames": [fit.frame_ids[0], fit.frame_ids[-1], len(fit)],
+        "val_frames": [select.frame_ids[0], select.frame_ids[-1], len(select)],
+        "holdout": holdout,
+    }
+
+
+def recover_checkpoint(
+    root: str | Path, out: str | Path, dataset: dict[str, object] | None = None
+) -> tuple[Path, Recovered]:
+    """Write the recovered model of ``root`` as a checkpoint folder ``out`` (``dataset``: the split
+    record to keep, :func:`split_record`); -> (out, what was read)."""
     rec = recover_model(root)
-    state = CheckpointState(kind=rec.kind, train=TrainConfig(), epochs=0, recovered_from=str(root))
+    state = CheckpointState(
+        kind=rec.kind, train=TrainConfig(), epochs=0, recovered_from=str(root), dataset=dataset or {}
+    )
     return save_checkpoint(out, rec.model, rec.cfg, state), rec
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("model_dir", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--out", type=click.Path(path_type=Path), required=True, help="checkpoint folder to write")
+@click.option("--dataset", help="Record the model's training split on this dataset (sim, astyx, vod).")
+@click.option("--data", type=click.Path(path_type=Path), help="--dataset root.")
+@click.option("--holdout", type=float, default=0.15, show_default=True, help="The training run's --holdout.")
 @one_line_errors
-def main(model_dir: Path, out: Path) -> None:
+def main(model_dir: Path, out: Path, dataset: str | None, data: Path | None, holdout: float) -> None:
     """Rebuild a checkpoint from the exported model MODEL_DIR (its ONNX graphs' weights)."""
     if out.exists():
         raise MsdnetError(out, "exists: choose another --out")
-    folder, rec = recover_checkpoint(model_dir, out)
+    if (dataset is None) != (data is None):
+        raise MsdnetError("--dataset", "--dataset and --data go together")
+    split = None
+    if dataset is not None and data is not None:
+        manifest = read_manifest(model_dir)
+        cfg = dataclass_from_dict(
+            ModelConfig, manifest.get("config"), f"{model_dir / 'manifest.json'}: config"
+        )
+        split = split_record(dataset, data, cfg, holdout)
+    folder, rec = recover_checkpoint(model_dir, out, split)
     click.echo(
         f"{rec.kind}: {rec.elements:,} weight elements read back from {model_dir}, re-export identical"
         f" -> {folder}; in no graph (fresh values): {', '.join(rec.absent) or 'none'}"
