@@ -37,3 +37,21 @@ def test_head_scales_match_targets():
     torch.testing.assert_close(occ, torch.sigmoid(outs[2][0]))
     half = torch.tensor(cfg.grid.voxel_size) / 2
     assert torch.all(off.abs() <= half.reshape(1, 3, 1, 1, 1))
+
+
+def test_up2x_exports_as_one_conv_transpose_with_the_same_values():
+    """The export form (ConvTranspose over [x, 1], the per-child bias as the ones channel's
+    weights) is the torch form, and an export holds no 8-D Transpose."""
+    import io
+
+    import onnx
+
+    torch.manual_seed(1)
+    up = Up2x(5, 3).eval()
+    x = torch.randn(1, 5, 3, 4, 6)
+    torch.testing.assert_close(up.as_conv_transpose(x), up(x), atol=TOL, rtol=TOL)
+    buf = io.BytesIO()
+    with torch.no_grad():
+        torch.onnx.export(up, (x,), buf, opset_version=19, dynamo=False)
+    ops = [n.op_type for n in onnx.load_model_from_string(buf.getvalue()).graph.node]
+    assert "ConvTranspose" in ops and "Transpose" not in ops

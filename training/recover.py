@@ -38,6 +38,7 @@ from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.model.artifact import read_manifest
 from msdnet.training.checkpoint import CheckpointState, dataclass_from_dict, save_checkpoint
 from msdnet.training.config import ModelConfig, TrainConfig
+from msdnet.training.head import Up2x, up_export_style
 from msdnet.training.models import build_model
 
 BASE = 2**20  # first probe index: far above the small integer constants a graph holds
@@ -84,13 +85,25 @@ def _first_reader(slots: Slots) -> dict[str, tuple[str, int]]:
     return first
 
 
+def _up_style(root: Path) -> str:
+    """How the folder's head graph up-samples (``Up2x.export_style``): ``conv_transpose`` since
+    2026-12-03, ``depth_to_space`` (1x1x1 conv + an 8-D Transpose) in models exported before."""
+    head = root / "recon_head.onnx"
+    if not head.is_file():
+        return Up2x.export_style
+    ops = {n.op_type for n in onnx.load(str(head), load_external_data=False).graph.node}
+    return "conv_transpose" if "ConvTranspose" in ops else "depth_to_space"
+
+
 def _export(
-    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path
+    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, style: str
 ) -> dict[str, tuple[dict[str, np.ndarray], dict[str, tuple[str, int]]]]:
-    """file -> (initializers, the first reader of each) of ``model``'s export."""
+    """file -> (initializers, the first reader of each) of ``model``'s export, its head's
+    up-sampling exported in ``style``."""
     from msdnet.export.graphs import export_all
 
-    export_all(model, kind, cfg, folder)
+    with up_export_style(style):
+        export_all(model, kind, cfg, folder)
     graphs = {p.name: _read_graph(p) for p in sorted(folder.glob("*.onnx"))}
     return {file: (inits, _first_reader(slots)) for file, (inits, slots) in graphs.items()}
 
@@ -126,8 +139,9 @@ def recover_model(root: str | Path) -> Recovered:
     if total >= LIMIT:
         raise MsdnetError(root, f"{total - BASE} weight elements: more than the probe can index")
     flat = [np.full(t.numel(), np.nan) for _, t in entries]  # recovered values, NaN = not seen
+    style = _up_style(root)
     with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
-        probed = _export(probe, kind, cfg, Path(tmp))
+        probed = _export(probe, kind, cfg, Path(tmp), style)
     for file, (inits, consumers) in probed.items():
         if not (root / file).is_file():
             continue  # an optional graph the folder does not carry
@@ -142,16 +156,15 @@ def recover_model(root: str | Path) -> Recovered:
             if there is None or shipped[there].shape != index.shape:
                 node = consumers.get(name, ("?", 0))[0]
                 raise MsdnetError(root / file, f"weight {name!r} of {node!r} is not this msdnet's export")
-            which = np.searchsorted(starts, ix, side="right") - 1
-            if np.any(which != which[0]):
-                raise MsdnetError(root / file, f"initializer {name!r} mixes several weights")
-            j = int(which[0])
-            pos = (ix - starts[j]).astype(np.int64)
+            which = np.searchsorted(starts, ix, side="right") - 1  # weight of each element
             values = shipped[there].astype(np.float64).ravel()
-            seen = ~np.isnan(flat[j][pos])
-            if np.any(flat[j][pos][seen] != values[seen]):
-                raise MsdnetError(root / file, f"{entries[j][0]} differs between the graphs")
-            flat[j][pos] = values
+            for j in np.unique(which):  # one, or several folded together (a weight and its bias)
+                mine = which == j
+                pos = (ix[mine] - starts[j]).astype(np.int64)
+                seen = ~np.isnan(flat[j][pos])
+                if np.any(flat[j][pos][seen] != values[mine][seen]):
+                    raise MsdnetError(root / file, f"{entries[j][0]} differs between the graphs")
+                flat[j][pos] = values[mine]
     state = model.state_dict()
     absent: set[str] = set()
     elements = 0
@@ -165,14 +178,14 @@ def recover_model(root: str | Path) -> Recovered:
             if not got.all():
                 raise MsdnetError(root, f"{key}: {int((~got).sum())} of {got.size} elements in no graph")
             state[key].copy_(torch.from_numpy(values.reshape(tensor.shape)).to(state[key].dtype))
-    _check_same(model, kind, cfg, root)
+    _check_same(model, kind, cfg, root, style)
     return Recovered(model, cfg, kind, elements, tuple(sorted(absent)))
 
 
-def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path) -> None:
+def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path, style: str) -> None:
     """Export ``model`` again: every initializer of each graph the folder has must be the same bytes."""
     with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
-        again = _export(model, kind, cfg, Path(tmp))
+        again = _export(model, kind, cfg, Path(tmp), style)
     for file, (inits, consumers) in again.items():
         if not (root / file).is_file():
             continue
