@@ -91,3 +91,14 @@ def test_refresh_refuses_in_one_line(legacy, tmp_path):
     (tmp_path / "file").write_text("x")
     res = CliRunner().invoke(refresh_main, [str(legacy), "--out", str(tmp_path / "file")])
     assert res.exit_code != 0 and "not a folder" in res.output and "Traceback" not in res.output
+
+
+@pytest.mark.parametrize("up", ["conv_transpose", "depth_to_space"])
+def test_latency_random_models_export_the_asked_up_sampling(up, tmp_path):
+    """``msdnet-bench latency --up-sampling``: old and new head graphs, timed side by side."""
+    from msdnet.benchmarks.latency.models import preset_config, random_pair
+
+    with one_torch_thread():
+        pair = random_pair(preset_config("tiny"), tmp_path, up=up)
+    for m in (pair.msdnet, pair.r2ldm):
+        assert ("ConvTranspose" in _ops(m.folder / "recon_head.onnx")) == (up == "conv_transpose")

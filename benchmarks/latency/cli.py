@@ -19,6 +19,11 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option("--head", type=click.Choice(["dense", "sparse"]), help="Recon head of random models [dense].")
 @click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")
+@click.option(
+    "--up-sampling",
+    type=click.Choice(["conv_transpose", "depth_to_space"]),
+    help="Head up-sampling of random models' graphs; depth_to_space: as exported before 2026-12-03.",
+)
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
 @click.option(
     "--provider",
@@ -60,6 +65,7 @@ def latency_command(
     model: Path | None,
     head: str | None,
     loop_steps: int | None,
+    up_sampling: str | None,
     r2ldm: Path | None,
     provider: str,
     threads: int | None,
@@ -88,6 +94,7 @@ def latency_command(
         "model": model,
         "head": head,
         "loop_steps": loop_steps,
+        "up_sampling": up_sampling,
         "r2ldm": r2ldm,
         "provider": provider,
         "threads": threads,

@@ -56,24 +56,28 @@ class ModelPair:
     r2ldm: BenchModel  # the baseline
 
 
-def _export(model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str) -> int:
-    """Export ``model`` into the new ``folder``; -> deployed parameter count."""
+def _export(model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str, up: str) -> int:
+    """Export ``model`` into the new ``folder``, the head's up-sampling in form ``up``
+    (``training.head.Up2x``); -> deployed parameter count."""
     from msdnet.export.graphs import export_all
     from msdnet.export.manifest import build_manifest, write_manifest
+    from msdnet.training.head import up_export_style
 
     folder.mkdir(parents=True)
     before = torch.get_num_threads()
     torch.set_num_threads(1)  # tracing is many tiny ops: a spinning OpenMP pool only slows it
     try:
-        params, _ = export_all(model, kind, cfg, folder)
+        with up_export_style(up):
+            params, _ = export_all(model, kind, cfg, folder)
     finally:
         torch.set_num_threads(before)
     write_manifest(folder, build_manifest(folder, kind, cfg, params, source))
     return int(sum(params.values()))
 
 
-def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0) -> ModelPair:
-    """Random MSDNet and R2LDM of ``cfg`` exported to ``folder/msdnet`` and ``folder/r2ldm``."""
+def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0, up: str = "conv_transpose") -> ModelPair:
+    """Random MSDNet and R2LDM of ``cfg`` exported to ``folder/msdnet`` and ``folder/r2ldm``
+    (``up``: the heads' up-sampling form; ``depth_to_space`` = the graphs before 2026-12-03)."""
     from msdnet.training.models import build_model
 
     torch.manual_seed(seed)
@@ -86,7 +90,7 @@ def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0) -> ModelPair:
         unit="model",
         disable=None,
     ):
-        params = _export(model, kind, cfg, folder / name, f"random init, seed {seed}")
+        params = _export(model, kind, cfg, folder / name, f"random init, seed {seed}", up)
         out.append(BenchModel(folder / name, kind, "random", model, params))
     return ModelPair(cfg, out[0], out[1])
 

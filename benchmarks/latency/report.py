@@ -139,6 +139,11 @@ def _header(res: dict[str, Any]) -> list[str]:
             "- Random weights: latency depends on them only through the decoded point count, "
             "which the threshold above fixes."
         )
+    if res.get("up_sampling"):
+        form = {"conv_transpose": "one ConvTranspose (since 2026-12-03)"}.get(
+            res["up_sampling"], "1x1x1 conv + 8-D Transpose (the graphs before 2026-12-03)"
+        )
+        out.append(f"- Head up-sampling exported as {form}.")
     return out
 
 

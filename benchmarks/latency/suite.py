@@ -62,6 +62,7 @@ class LatencyConfig:
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
     head: str | None = None  # random models: "dense" or "sparse" recon head [the preset's: dense]
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
+    up_sampling: str | None = None  # random models: head export form (training.head.Up2x) [conv_transpose]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
     provider: str = "cpu"  # provider short name (runtime.engine.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
@@ -102,9 +103,11 @@ def _models(cfg: LatencyConfig, scratch: Path) -> ModelPair:
             base = replace(base, head_kind=cfg.head)
         if cfg.loop_steps is not None:
             base = replace(base, diffusion=replace(base.diffusion, sample_steps=cfg.loop_steps))
-        return random_pair(base, scratch, cfg.seed)
-    if cfg.head is not None or cfg.loop_steps is not None:
-        raise MsdnetError("--head", "--head and --loop-steps set up random models: not with --model")
+        return random_pair(base, scratch, cfg.seed, cfg.up_sampling or "conv_transpose")
+    if cfg.head is not None or cfg.loop_steps is not None or cfg.up_sampling is not None:
+        raise MsdnetError(
+            "--head", "--head, --loop-steps and --up-sampling set up random models: not with --model"
+        )
     pair = given_pair(cfg.model, cfg.r2ldm, scratch, cfg.seed)
     if cfg.preset is not None and cfg.preset != pair.cfg.preset:
         raise MsdnetError("--preset", f"{cfg.preset} differs from the model's preset {pair.cfg.preset}")
@@ -248,6 +251,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     res: dict[str, Any] = {
         "preset": pair.cfg.preset,
         "head_kind": pair.cfg.head_kind,  # recon head: "dense" (before 2026-12-02) or "sparse"
+        "up_sampling": cfg.up_sampling,  # random models' head export form (None: given models / default)
         "provider": cfg.provider,
         "threads": cfg.threads,
         "repeats": {"msdnet": cfg.repeats, "r2ldm": cfg.r2ldm_repeats, "sweeps": cfg.sweep_repeats},
