@@ -9,7 +9,7 @@ teacher and the student ("a common set of weights within the point cloud reconst
 
 ``head_channels = (c4, c2, c1)``. Every "2x up" is a 2x2x2 stride-2 transposed convolution written
 as a 1x1x1 convolution to ``8 * c_out`` channels followed by a depth-to-space shuffle (the same
-function; it runs as one MatMul instead of the slow col2im of ConvTranspose3d on CPUs). The full
+function; fast in torch) and exported to ONNX as one ``ConvTranspose`` (:class:`Up2x`). The full
 scale (paper: 40 x 320 x 320) is never materialised with c1 channels: per half-scale voxel a 1x1x1
 conv gives its 8 children's c1 features, ReLU, then a grouped 1x1x1 conv gives each child's
 [occupancy logit, dx, dy, dz]; only those 4 channels are shuffled to full resolution. Crops make
