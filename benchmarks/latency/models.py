@@ -56,7 +56,9 @@ class ModelPair:
     r2ldm: BenchModel  # the baseline
 
 
-def _export(model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str, up: str) -> int:
+def _export(
+    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str, up: str = "conv_transpose"
+) -> int:
     """Export ``model`` into the new ``folder``, the head's up-sampling in form ``up``
     (``training.head.Up2x``); -> deployed parameter count."""
     from msdnet.export.graphs import export_all
