@@ -219,3 +219,12 @@ def test_latency_results_record_the_picks(folder, cache):
     enc = pipe.auto.picks[onnx_spec.ENCODER.file]
     assert f"| msdnet | encoder.onnx | **{enc.engine}** | {enc.ms['onnxruntime']:.3f} |" in text
     assert auto_section({"provider_auto": {}}) == []
+
+
+def test_only_cpu_pins_the_adapter_to_one_thread(folder, cache):
+    """``cpu`` keeps the DeformConv graph on one thread (same bytes at any ``threads``); ``auto``
+    promises no bytes and gives it the threads asked for (at paper width 157 -> 99 ms at 2)."""
+    rgfd = onnx_spec.RGFD_ADAPTER.file
+    assert Pipeline.from_dir(folder, threads=2).graph_threads[rgfd] == 1
+    auto = Pipeline.from_dir(folder, "auto", threads=2)
+    assert auto.graph_threads[rgfd] == 2 and auto.graph_threads[onnx_spec.ENCODER.file] == 2

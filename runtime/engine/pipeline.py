@@ -77,11 +77,14 @@ class Pipeline:
         self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
         self.sessions: dict[str, ort.InferenceSession] = {}
         threads_of: dict[str, int | None] = {}  # graph file -> intra-op threads
+        self.graph_threads = threads_of  # kept for logs and tests
+        # onnxruntime's CPU DeformConv sums in an order that depends on the thread count (7e-7
+        # apart on sim-lite), so with the byte-reproducible ``cpu`` provider the adapter always gets
+        # one thread and the output bytes do not depend on ``threads`` (~2 ms a scan in lite, 150 ms
+        # at paper width); the other providers promise no bytes and give it ``threads`` too.
+        one = base_provider(provider) == "cpu"
         for spec in artifact.specs:
-            # onnxruntime's CPU DeformConv sums in an order that depends on the thread count
-            # (7e-7 apart on sim-lite); the adapter runs once per scan (~2 ms), so it always
-            # gets one thread and the output bytes do not depend on ``threads``.
-            n = threads_of[spec.file] = 1 if spec.file == onnx_spec.RGFD_ADAPTER.file else threads
+            n = threads_of[spec.file] = 1 if one and spec.file == onnx_spec.RGFD_ADAPTER.file else threads
             sess = create_session(artifact.graphs[spec.file], spec.file, provider, n)
             names_in = tuple(i.name for i in sess.get_inputs())
             names_out = tuple(o.name for o in sess.get_outputs())
