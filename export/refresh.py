@@ -50,7 +50,7 @@ def _agree(old_dir: Path, new_dir: Path) -> tuple[float, int]:
     """(largest relative output difference, decoded points) of the two folders on the old
     model's own inputs; MsdnetError when a graph or the decoded points disagree."""
     from msdnet.runtime.engine.pipeline import Pipeline
-    from msdnet.runtime.engine.provider_auto import disagreement, graph_inputs
+    from msdnet.runtime.engine.provider_auto import disagreement, graph_inputs, seeded_scan
 
     old, new = Pipeline.from_dir(old_dir, threads=1), Pipeline.from_dir(new_dir, threads=1)
     worst = 0.0
@@ -65,22 +65,11 @@ def _agree(old_dir: Path, new_dir: Path) -> tuple[float, int]:
             if a.shape == b.shape and a.size and np.issubdtype(b.dtype, np.floating):
                 scale = float(np.max(np.abs(b))) or 1.0
                 worst = max(worst, float(np.max(np.abs(a.astype(np.float64) - b))) / scale)
-    pts = _check_scan(old)
+    pts = seeded_scan(old, np.random.default_rng(0))  # the scan graph_inputs ran
     a, b = old(pts, seed=0).points, new(pts, seed=0).points
     if a.shape != b.shape or not np.allclose(a, b, atol=1e-4):
         raise MsdnetError(new_dir, f"decodes {len(b)} points where the old folder decodes {len(a)}")
     return worst, len(a)
-
-
-def _check_scan(pipe: Any) -> np.ndarray:
-    """The seeded scan of ``provider_auto.graph_inputs`` (points over the grid box)."""
-    from msdnet.runtime.engine.provider_auto import SCAN_POINTS
-
-    grid = pipe.artifact.grid
-    lo, hi = np.asarray(grid.point_range[:3], np.float32), np.asarray(grid.point_range[3:], np.float32)
-    pts = np.zeros((SCAN_POINTS, len(pipe.columns)), np.float32)
-    pts[:, :3] = lo + (hi - lo) * np.random.default_rng(0).random((SCAN_POINTS, 3), dtype=np.float32)
-    return pts
 
 
 def refresh_model(root: str | Path, out: str | Path | None = None) -> Refreshed:

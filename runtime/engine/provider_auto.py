@@ -201,15 +201,21 @@ def failure_reason(err: Exception) -> str:
     return f"{type(err).__name__}: {'; '.join(summary or lines[:1])[:200]}"
 
 
+def seeded_scan(pipe: Pipeline, rng: np.random.Generator) -> np.ndarray:
+    """(SCAN_POINTS, C) float32 in the model's columns: x, y, z uniform over the grid box, the
+    other columns 0."""
+    grid = pipe.artifact.grid
+    lo, hi = np.asarray(grid.point_range[:3], np.float32), np.asarray(grid.point_range[3:], np.float32)
+    pts = np.zeros((SCAN_POINTS, len(pipe.columns)), np.float32)
+    pts[:, :3] = lo + (hi - lo) * rng.random((SCAN_POINTS, 3), dtype=np.float32)
+    return pts
+
+
 def graph_inputs(pipe: Pipeline) -> dict[str, dict[str, np.ndarray]]:
     """Each graph's inputs on a seeded scan over the grid box (module docstring), run through the
     pipeline's own sessions with plain ``session.run``."""
-    grid = pipe.artifact.grid
-    lo, hi = np.asarray(grid.point_range[:3], np.float32), np.asarray(grid.point_range[3:], np.float32)
     rng = np.random.default_rng(0)
-    pts = np.zeros((SCAN_POINTS, len(pipe.columns)), np.float32)
-    pts[:, :3] = lo + (hi - lo) * rng.random((SCAN_POINTS, 3), dtype=np.float32)
-    enc, _, _ = pipe.encoder_feeds(pts)
+    enc, _, _ = pipe.encoder_feeds(seeded_scan(pipe, rng))
     feeds = {onnx_spec.ENCODER.file: enc}
     (f_s,) = pipe.sessions[onnx_spec.ENCODER.file].run(None, enc)
     x = rng.standard_normal(pipe.bev_shape, dtype=np.float32)
