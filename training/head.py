@@ -77,13 +77,9 @@ class Up2x(nn.Module):
     def as_conv_transpose(self, x: Tensor) -> Tensor:
         """The same map as one transposed convolution over ``[x, 1]``: (B, cin, D, H, W) ->
         (B, cout, 2D, 2H, 2W)."""
-        cin = x.shape[1]
-        w = self.proj.weight.reshape(2, 2, 2, self.cout, cin).permute(
-            4, 3, 0, 1, 2
-        )  # (cin, cout, dz, dy, dx)
-        b = (
-            self.proj.bias.reshape(2, 2, 2, self.cout).permute(3, 0, 1, 2).unsqueeze(0)
-        )  # (1, cout, dz, dy, dx)
+        cin, c = x.shape[1], self.cout
+        w = self.proj.weight.reshape(2, 2, 2, c, cin).permute(4, 3, 0, 1, 2)  # (cin, cout, dz, dy, dx)
+        b = self.proj.bias.reshape(2, 2, 2, c).permute(3, 0, 1, 2).unsqueeze(0)  # (1, cout, dz, dy, dx)
         ones = torch.ones_like(x[:, :1])  # (B, 1, D, H, W)
         return nn.functional.conv_transpose3d(torch.cat([x, ones], 1), torch.cat([w, b], 0), stride=2)
 
