@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -57,10 +58,10 @@ class ModelPair:
 
 
 def _export(
-    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str, up: str = "conv_transpose"
+    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str, up: str | None = None
 ) -> int:
     """Export ``model`` into the new ``folder``, the head's up-sampling in form ``up``
-    (``training.head.Up2x``); -> deployed parameter count."""
+    (``training.head.Up2x``; None: the exporter's own); -> deployed parameter count."""
     from msdnet.export.graphs import export_all
     from msdnet.export.manifest import build_manifest, write_manifest
     from msdnet.training.head import up_export_style
@@ -69,7 +70,7 @@ def _export(
     before = torch.get_num_threads()
     torch.set_num_threads(1)  # tracing is many tiny ops: a spinning OpenMP pool only slows it
     try:
-        with up_export_style(up):
+        with up_export_style(up) if up is not None else contextlib.nullcontext():
             params, _ = export_all(model, kind, cfg, folder)
     finally:
         torch.set_num_threads(before)
@@ -77,9 +78,10 @@ def _export(
     return int(sum(params.values()))
 
 
-def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0, up: str = "conv_transpose") -> ModelPair:
+def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0, up: str | None = None) -> ModelPair:
     """Random MSDNet and R2LDM of ``cfg`` exported to ``folder/msdnet`` and ``folder/r2ldm``
-    (``up``: the heads' up-sampling form; ``depth_to_space`` = the graphs before 2026-12-03)."""
+    (``up``: the heads' up-sampling form, ``depth_to_space`` = the graphs before 2026-12-03;
+    None: the exporter's own)."""
     from msdnet.training.models import build_model
 
     torch.manual_seed(seed)

@@ -62,7 +62,7 @@ class LatencyConfig:
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
     head: str | None = None  # random models: "dense" or "sparse" recon head [the preset's: dense]
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
-    up_sampling: str | None = None  # random models: head export form (training.head.Up2x) [conv_transpose]
+    up_sampling: str | None = None  # random models: head export form (training.head.Up2x) [the exporter's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
     provider: str = "cpu"  # provider short name (runtime.engine.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
@@ -103,7 +103,7 @@ def _models(cfg: LatencyConfig, scratch: Path) -> ModelPair:
             base = replace(base, head_kind=cfg.head)
         if cfg.loop_steps is not None:
             base = replace(base, diffusion=replace(base.diffusion, sample_steps=cfg.loop_steps))
-        return random_pair(base, scratch, cfg.seed, cfg.up_sampling or "conv_transpose")
+        return random_pair(base, scratch, cfg.seed, cfg.up_sampling)
     if cfg.head is not None or cfg.loop_steps is not None or cfg.up_sampling is not None:
         raise MsdnetError(
             "--head", "--head, --loop-steps and --up-sampling set up random models: not with --model"
