@@ -76,7 +76,8 @@ def calibrate_gate(
             in_grid = _children_in_grid(out["voxels"], pipe.artifact.grid.shape_zyx)
             counts.append(((out["occupancy"] > np.float32(thr)) & in_grid).sum(axis=1))
             gates.append(out["gate_occupancy"])
-            keep_all.append(keep_all_gate(out["occupancy"] * in_grid, out["gate_occupancy"], thr))
+            if counts[-1].any():  # a frame without a point puts no bound on the gate
+                keep_all.append(keep_all_gate(out["occupancy"] * in_grid, out["gate_occupancy"], thr))
     finally:
         pipe.gate = before
     if not gates:
@@ -97,7 +98,7 @@ def calibrate_gate(
         recall=recall,
         points_kept=float(c[kept].sum() / total) if total else 1.0,
         voxels_kept=float(kept.mean()),
-        keep_all_gate=float(min(keep_all)),
+        keep_all_gate=float(min(keep_all)) if keep_all else 0.0,
         frames=len(gates),
         threshold=thr,
     )

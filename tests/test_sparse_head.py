@@ -19,6 +19,7 @@ from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model.artifact import load_artifact
 from msdnet.training.head import ReconHead
+from msdnet.training.head_gated import FixedGroupNorm, GatedReconHead
 from msdnet.training.head_sparse import build_head
 from msdnet.training.models import bev_shape
 
@@ -27,21 +28,25 @@ ODD = GridConfig((0.0, 0.0, 0.0, 2.2, 1.8, 1.5), (0.2, 0.2, 0.3))  # 11 x 9 x 5:
 
 def _gate_occupancy(head: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
     """Every half-scale voxel's gate occupancy, from the dense multi-scale outputs: its own
-    occupancy (ReconHead), or the smaller of its own and its 1/4 parent's (SparseReconHead)."""
+    occupancy (ReconHead), or the smaller of its own and its 1/4 parent's (SparseReconHead,
+    GatedReconHead)."""
     (l4, _), (l2, _), _ = head.multi_scale(x)
     own = torch.sigmoid(l2)[0, 0]  # (D2, H2, W2)
-    if isinstance(head, ReconHead):
+    if type(head) is ReconHead:
         return own.reshape(-1)
     d2, h2, w2 = own.shape
     up = torch.sigmoid(l4)[0, 0].repeat_interleave(2, 0).repeat_interleave(2, 1).repeat_interleave(2, 2)
     return torch.minimum(own, up[:d2, :h2, :w2]).reshape(-1)
 
 
-@pytest.mark.parametrize("kind", ["dense", "sparse"])
+@pytest.mark.parametrize("kind", ["dense", "sparse", "gated"])
 def test_sparse_children_equal_packed(kind: str) -> None:
     torch.manual_seed(0)
     cfg = dataclasses.replace(tiny_config(), head_kind=kind)
     head = build_head(cfg).eval()
+    if isinstance(head, GatedReconHead):  # statistics as calibration would set them, not 0 / 1
+        for norm in head.norms():
+            norm.fold(torch.rand(norm.num_groups) - 0.5, torch.rand(norm.num_groups) * 2 + 0.2)
     x = torch.randn(1, *bev_shape(cfg))
     with one_torch_thread(), torch.no_grad():
         occ, off = head.packed(x)  # (1, 8, D2, H2, W2), (1, 8, 3, D2, H2, W2)
@@ -69,6 +74,40 @@ def test_sparse_head_is_per_voxel_below_the_coarsest_level() -> None:
     assert volume == {"conv8.1", "conv8b.1", "post4.body.0", "post4.body.4"}
 
 
+def test_gated_head_norms_nothing_over_the_half_volume() -> None:
+    """The gated head is the dense head with the 1/2 level's norms fixed (no statistics over the
+    volume): what lets its ``sparse`` compute 1/2 under the gated 1/4 voxels only, exactly."""
+    head = build_head(dataclasses.replace(tiny_config(), head_kind="gated"))
+    dense = build_head(tiny_config())
+    volume = {
+        n
+        for n, m in head.named_modules()
+        if isinstance(m, torch.nn.GroupNorm) and not isinstance(m, FixedGroupNorm)
+    }
+    assert volume == {"conv8.1", "post4.0", "post4.2.1"}  # the 1/8 and 1/4 levels only
+    assert {n for n, m in head.named_modules() if isinstance(m, FixedGroupNorm)} == {"post2.0", "post2.2.1"}
+    head.load_state_dict(dense.state_dict())  # the same keys: a dense head's weights load
+
+
+def test_gated_sparse_skips_the_half_level_where_the_quarter_is_empty() -> None:
+    """With a gate, 1/2 voxels are computed only under the 1/4 voxels above it: a 1/2 voxel whose
+    parent fails the gate never appears, whatever its own occupancy."""
+    torch.manual_seed(2)
+    cfg = dataclasses.replace(tiny_config(), head_kind="gated")
+    head = build_head(cfg).eval()
+    x = torch.randn(1, *bev_shape(cfg))
+    with torch.no_grad():
+        (l4, _), (l2, _), _ = head.multi_scale(x)
+        gate = torch.quantile(_gate_occupancy(head, x), 0.7).reshape(1)
+        _, _, vox, _ = head.sparse(x, gate)
+    h2, w2 = l2.shape[3:]
+    occ4 = torch.sigmoid(l4)[0, 0]
+    z, y, xx = vox // (h2 * w2), vox // w2 % h2, vox % w2
+    assert len(vox) > 0 and torch.all(occ4[z // 2, y // 2, xx // 2] > gate)
+    own = torch.sigmoid(l2)[0, 0].reshape(-1)
+    assert int((own > gate).sum()) > len(vox)  # some voxels above the gate were never computed
+
+
 @pytest.mark.parametrize("grid", [GRID_PRESETS["tiny"], ODD], ids=["tiny", "odd"])
 def test_sparse_decoder_equals_packed_decoder(grid: GridConfig) -> None:
     rng = np.random.default_rng(1)
@@ -94,9 +133,10 @@ def test_sparse_decoder_equals_packed_decoder(grid: GridConfig) -> None:
         decode_sparse(rows_occ[:2], rows_off[:1], every[:2], grid, 0.5)
 
 
-@pytest.fixture(scope="module", params=["dense", "sparse"])
+@pytest.fixture(scope="module", params=["dense", "sparse", "gated"])
 def sparse_pipe(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Pipeline:
-    """The coarse-to-fine graph of either head kind (ReconHead.sparse, SparseReconHead.sparse)."""
+    """The coarse-to-fine graph of each head kind (ReconHead.sparse, SparseReconHead.sparse,
+    GatedReconHead.sparse)."""
     folder = make_artifact(tmp_path_factory.mktemp("sparse"), "student", head_kind=request.param)
     return Pipeline.from_dir(folder, threads=1)
 
@@ -133,6 +173,11 @@ def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
     assert pipe.sparse_head_outputs() == {}  # the last call ran the dense head
     assert len(dense.points) > 0 and dense.stats["head_voxels"] == every.stats["head_voxels"]
     for res in (every, kept):
+        if pipe.artifact.manifest["config"]["head_kind"] == "gated":  # 1/2 conv as gather + matmul:
+            assert res.points.shape == dense.points.shape  # the same sums in another order
+            np.testing.assert_allclose(res.points, dense.points, rtol=0, atol=1e-5)
+            np.testing.assert_allclose(res.confidence, dense.confidence, rtol=0, atol=1e-6)
+            continue
         assert np.array_equal(res.points, dense.points) and np.array_equal(res.confidence, dense.confidence)
     assert kept.stats["head_voxels"] < every.stats["head_voxels"]
     assert gated.stats["head_voxels"] < kept.stats["head_voxels"] and len(gated.points) < len(dense.points)
@@ -174,8 +219,13 @@ def test_keep_all_gate() -> None:
 
 def test_calibrate_gate_keeps_the_asked_share(sparse_pipe: Pipeline) -> None:
     scans = [_scan(sparse_pipe, 150), _scan(sparse_pipe, 250)]
-    full = calibrate_gate(sparse_pipe, scans, threshold=0.6, recall=1.0)
-    half = calibrate_gate(sparse_pipe, scans, threshold=0.6, recall=0.5)
+    sparse_pipe.gate = 0.0
+    try:  # a threshold 10 % of the children pass (random weights: 0.6 may pass none)
+        thr = float(np.quantile(_sparse_outputs(sparse_pipe, scans[0])[0], 0.9))
+    finally:
+        sparse_pipe.gate = None
+    full = calibrate_gate(sparse_pipe, scans, threshold=thr, recall=1.0)
+    half = calibrate_gate(sparse_pipe, scans, threshold=thr, recall=0.5)
     assert sparse_pipe.gate is None  # left as it was
     assert full.points_kept == 1.0 and full.gate <= full.keep_all_gate + 1e-4 and full.frames == 2
     assert 0.5 <= half.points_kept < 1.0 and half.gate > full.gate and half.voxels_kept < full.voxels_kept

@@ -64,7 +64,7 @@ NOT_TEACHER = (
     "use_adapter",
     "diffusion",
 )
-HEAD_KINDS = ("dense", "sparse")  # --head: training/head.py, training/head_sparse.py
+HEAD_KINDS = ("dense", "gated", "sparse")  # --head: training/head.py, head_gated.py, head_sparse.py
 ABLATIONS = {"rgfd": "use_rgfd", "dgfd": "use_dgfd", "adapter": "use_adapter"}  # --ablate NAME -> field
 
 
@@ -268,7 +268,7 @@ def _plan(
 )
 @click.option("--denoiser-hidden", type=int, default=None, help="Student: light denoiser width [32].")
 @click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
-@click.option("--head", "head_kind", default=None, help="Recon head: dense | sparse [dense].")
+@click.option("--head", "head_kind", default=None, help="Recon head: dense | gated | sparse [dense].")
 @click.option(
     "--head-only",
     is_flag=True,

@@ -69,7 +69,10 @@ class ModelConfig:
     head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
     # recon head: "dense" (3x3x3 convs and volume GroupNorms down to 1/2: the shipped models) or
     # "sparse" (only 1/8 and 1/4 mix neighbours, per voxel below: runs on occupied voxels only;
-    # head_sparse.py). Sparse cost 10 % CD on sim held-out frames (docs/training.md): not the default
+    # head_sparse.py). Sparse cost 10 % CD on sim held-out frames (docs/training.md): not the default.
+    # "gated": dense with fixed-statistics norms at 1/2, whose coarse-to-fine graph computes 1/2
+    # only under the 1/4 voxels above the gate (head_gated.py; from a dense student by
+    # training/calibrate_gated.py)
     head_kind: str = "dense"
     # sparse head only: widths at 1/4 and 1/2 (1/8 and the full scale keep head_channels[0], [2]);
     # wider than the dense head's, since below 1/4 a voxel sees only its parent (head_sparse.py)

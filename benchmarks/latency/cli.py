@@ -17,7 +17,9 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     "--preset", type=click.Choice(["tiny", "lite", "paper", "paper-width"]), help="Random models [lite]."
 )
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
-@click.option("--head", type=click.Choice(["dense", "sparse"]), help="Recon head of random models [dense].")
+@click.option(
+    "--head", type=click.Choice(["dense", "gated", "sparse"]), help="Recon head of random models [dense]."
+)
 @click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")
 @click.option(
     "--up-sampling",

@@ -1,0 +1,137 @@
+"""The dense reconstruction head with fixed-statistics norms at 1/2, whose coarse-to-fine graph
+computes the 1/2 level only where the 1/4 level sees occupancy (``ModelConfig.head_kind``
+"gated").
+
+Same layers, weights and contract as :class:`~msdnet.training.head.ReconHead` (a dense checkpoint
+loads into it), with one change: the two GroupNorms of the 1/2 level (``post2``) normalise with
+fixed per-group statistics (:class:`FixedGroupNorm`) instead of statistics over the whole 1/2
+volume. ``training.calibrate_gated`` sets them on the training range, and refits the 1/4
+occupancy branch so that it says where the head decodes points (the gate). Every layer below
+1/4 is then a function of a voxel's 3x3x3 neighbourhood alone, so :meth:`GatedReconHead.sparse`
+grows the occupied set coarse to fine and gives exactly the dense values where it computes:
+
+    1/8, 1/4   dense, as ReconHead (lite: 1,200 and 8,000 voxels)          -> x4, occupancy occ4
+    1/4 gate   parents P = the 1/4 voxels with occ4 > gate; P+ = P grown by one voxel (3x3x3)
+    1/2 input  per voxel of P+: its 8 children's up-sampled features, norm, ReLU (rows)
+    1/2 conv   per child of P: 3x3x3 conv as a gather of 27 neighbour rows + one matmul
+               (a rulebook, as the encoder's; every neighbour is a child of P+, or outside the
+               volume: the dense conv's zero padding), norm, ReLU               -> x2, occ2
+    full       per child of P with min(occ2, occ4 of its parent) > gate: its 8 children's
+               [logit, dx, dy, dz] (``HeadOutputs._row_children``)
+
+With gate 0 every voxel is computed and the outputs equal :meth:`packed`'s.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from msdnet.training.config import ModelConfig
+from msdnet.training.head import ReconHead, rows
+from msdnet.training.head_sparse import CHILD_DX, CHILD_DY, CHILD_DZ
+
+
+class FixedGroupNorm(nn.Module):
+    """A GroupNorm whose statistics are fixed: y = x * weight + bias per channel, the same map for
+    every voxel. Built from a GroupNorm (its affine as ``weight`` / ``bias``, i.e. statistics 0 / 1)
+    and given its statistics by :meth:`fold`, which folds them into ``weight`` and ``bias`` (so
+    the state_dict keys are the GroupNorm's, and the exported Mul / Add hold the weights as they are)."""
+
+    def __init__(self, num_groups: int, num_channels: int, eps: float = 1e-5) -> None:
+        super().__init__()
+        self.num_groups, self.num_channels, self.eps = num_groups, num_channels, eps
+        self.weight = nn.Parameter(torch.ones(num_channels))
+        self.bias = nn.Parameter(torch.zeros(num_channels))
+
+    def fold(self, mean: Tensor, var: Tensor) -> None:
+        """Normalise with per-group ``mean`` (G,) and ``var`` (G,) before the affine already held."""
+        per = self.num_channels // self.num_groups
+        with torch.no_grad():
+            scale = self.weight / torch.sqrt(var.repeat_interleave(per).to(self.weight) + self.eps)
+            self.bias.sub_(mean.repeat_interleave(per).to(self.weight) * scale)
+            self.weight.copy_(scale)
+
+    def forward(self, x: Tensor) -> Tensor:
+        """x (B, C, ...) -> the same shape."""
+        shape = (1, -1) + (1,) * (x.dim() - 2)
+        return x * self.weight.reshape(shape) + self.bias.reshape(shape)
+
+    def on_rows(self, x: Tensor) -> Tensor:
+        """x (..., C), channels last."""
+        return x * self.weight + self.bias
+
+
+def fixed_from(gn: nn.GroupNorm) -> FixedGroupNorm:
+    """A FixedGroupNorm with ``gn``'s groups, eps and affine (statistics 0 / 1 until folded)."""
+    out = FixedGroupNorm(gn.num_groups, gn.num_channels, gn.eps)
+    out.load_state_dict(gn.state_dict())
+    return out
+
+
+class GatedReconHead(ReconHead):
+    """ReconHead with fixed-statistics norms at 1/2 and the coarse-to-fine graph of the module
+    docstring."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__(cfg)
+        self.post2[0] = fixed_from(self.post2[0])  # GroupNorm -> ReLU -> (conv, GroupNorm, ReLU)
+        self.post2[2][1] = fixed_from(self.post2[2][1])
+        for name, v in (("child_dz", CHILD_DZ), ("child_dy", CHILD_DY), ("child_dx", CHILD_DX)):
+            self.register_buffer(name, torch.tensor(v, dtype=torch.int64).reshape(1, 8), persistent=False)
+        d2, h2, w2 = self.shapes[1]
+        k = torch.arange(27)  # tap (kz * 3 + ky) * 3 + kx, neighbour at (z + kz - 1, ...)
+        taps = ((k // 9 - 1) * (h2 + 2) + (k // 3 % 3 - 1)) * (w2 + 2) + (k % 3 - 1)
+        self.register_buffer("taps", taps.reshape(1, 27), persistent=False)  # in the padded volume
+
+    def norms(self) -> tuple[FixedGroupNorm, FixedGroupNorm]:
+        """The 1/2 level's two fixed norms (before the ReLU ahead of the conv, after the conv)."""
+        return self.post2[0], self.post2[2][1]
+
+    def _conv_rows(self, gathered: Tensor) -> Tensor:
+        """gathered (M, 27, c2_in) neighbour rows in tap order -> the 3x3x3 conv (M, c2)."""
+        conv = self.post2[2][0]
+        w = conv.weight.permute(2, 3, 4, 1, 0).reshape(-1, conv.out_channels)  # (27 * cin, cout)
+        return gathered.reshape(gathered.shape[0], -1) @ w
+
+    def sparse(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Coarse-to-fine inference, batch 1 (module docstring), with ``ReconHead.sparse``'s
+        outputs: occupancy (N, 8), offsets (N, 8, 3), voxels (N,) increasing half-scale index
+        ``(z2 * H2 + y2) * W2 + x2``, gate_occupancy (N,) = min(own 1/2 occupancy, parent's 1/4
+        occupancy) > gate. With gate 0 every voxel is kept and the outputs equal :meth:`packed`'s."""
+        (_, h4, w4), (d2, h2, w2) = self.shapes[0], self.shapes[1]
+        c2 = self.up2.cout
+        b, _, h8, w8 = features.shape
+        x = self.lift(features).reshape(b, self.c4, self.d8, h8, w8)  # channel-major re-read
+        x4 = self.post4(self._crop(self.up4(self.conv8(torch.relu(x))), 0))  # (1, c4, D4, H4, W4)
+        occ4 = torch.sigmoid(self.occ[0](x4))  # (1, 1, D4, H4, W4)
+        passed = (occ4 > gate).float()
+        grown = nn.functional.max_pool3d(passed, 3, stride=1, padding=1)  # P+ : P and its neighbours
+        par = torch.nonzero(grown.reshape(-1)).reshape(-1)  # (K,) 1/4 voxels whose children are read
+        is_p = passed.reshape(-1).index_select(0, par) > 0  # (K,) in P: its children are computed
+        f4 = x4.reshape(self.c4, -1).index_select(1, par).t()  # (K, c4)
+        n1, n2 = self.norms()
+        u = torch.relu(n1.on_rows(rows(self.up2.proj, f4).reshape(-1, 8, c2)))  # (K, child, c2)
+        z = torch.div(par, h4 * w4, rounding_mode="floor").unsqueeze(1) * 2 + self.child_dz  # (K, 8)
+        y = torch.remainder(torch.div(par, w4, rounding_mode="floor"), h4).unsqueeze(1) * 2 + self.child_dy
+        x = torch.remainder(par, w4).unsqueeze(1) * 2 + self.child_dx
+        inside = ((z < d2) & (y < h2) & (x < w2)).reshape(-1)  # (K * 8,) the crop to 1/2's grid
+        padded = (((z + 1) * (h2 + 2) + y + 1) * (w2 + 2) + x + 1).reshape(-1)  # (K * 8,)
+        zero_row = u.shape[0] * 8  # the table's appended zero row: padding and cropped children
+        lookup = torch.full(((d2 + 2) * (h2 + 2) * (w2 + 2),), zero_row, dtype=torch.int64)
+        row_id = torch.where(inside, torch.arange(zero_row), torch.full_like(padded, zero_row))
+        lookup = lookup.scatter(0, padded, row_id)  # padded 1/2 voxel -> row of the table
+        table = torch.cat([u.reshape(-1, c2), torch.zeros(1, c2)], 0)  # (K * 8 + 1, c2)
+        child = torch.nonzero(inside & is_p.unsqueeze(1).expand(-1, 8).reshape(-1)).reshape(-1)  # (M,)
+        nb = lookup.index_select(0, (padded.index_select(0, child).unsqueeze(1) + self.taps).reshape(-1))
+        gathered = table.index_select(0, nb).reshape(-1, 27, c2)  # (M, tap, c2)
+        x2 = torch.relu(n2.on_rows(self._conv_rows(gathered)))  # (M, c2)
+        occ2 = torch.sigmoid(rows(self.occ[1], x2)).reshape(-1)  # (M,)
+        parent = occ4.reshape(-1).index_select(0, par).unsqueeze(1).expand(-1, 8).reshape(-1)
+        gate_occ = torch.minimum(occ2, parent.index_select(0, child))
+        keep = torch.nonzero(gate_occ > gate).reshape(-1)
+        vox = ((z * h2 + y) * w2 + x).reshape(-1).index_select(0, child)  # (M,) half-scale index
+        voxels, order = torch.sort(vox.index_select(0, keep))  # increasing half-scale index
+        keep = keep.index_select(0, order)
+        occ, off = self._row_children(x2.index_select(0, keep))  # (N, 8), (N, 8, 3)
+        return occ, off, voxels, gate_occ.index_select(0, keep)
