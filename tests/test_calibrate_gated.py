@@ -1,4 +1,4 @@
-"""The gated head built from a dense student: fixed norms from pooled statistics, the 1/4 branch
+"""The gated head built from a dense student: the fixed norm from pooled statistics, the 1/4 branch
 refit as the gate, and the command on a tiny checkpoint."""
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def test_two_frames_pool_like_one_volume() -> None:
     _, gated = _pair(1)
     zs = list(torch.randn(2, 1, *bev_shape(gated.cfg)))
     seen = []
-    norm = gated.teacher.head.norms()[0]
+    norm = gated.teacher.head.fixed_norm()
     hook = norm.register_forward_pre_hook(lambda m, i: seen.append(i[0].detach().clone()))
     with one_torch_thread(), torch.no_grad():
         report = calibrate(gated, zs)
@@ -94,7 +94,7 @@ def test_command_writes_a_gated_checkpoint(tmp_path, vod_root) -> None:
     assert cfg.head_kind == "gated" and isinstance(model.teacher.head, GatedReconHead)
     assert state.init == str(ckpt)
     dense, _, _ = load_checkpoint(ckpt)
-    d_norm, g_norm = dense.teacher.head.post2[0], model.teacher.head.norms()[0]
+    d_norm, g_norm = dense.teacher.head.post2[2][1], model.teacher.head.fixed_norm()
     assert not torch.equal(d_norm.weight, g_norm.weight)  # statistics folded in
     again = CliRunner().invoke(main, [str(out), *args[1:-4], "--out", str(tmp_path / "x")])
     assert again.exit_code != 0 and "calibrate a dense head" in again.output

@@ -215,6 +215,8 @@ def test_random_models_take_the_head_and_loop_steps_asked_for(tmp_path):
     assert pair.cfg.head_kind == "sparse" and pair.cfg.diffusion.sample_steps == 3
     assert load_artifact(pair.msdnet.folder).diffusion.sample_steps == 3
     assert _models(LatencyConfig(out=tmp_path, preset="tiny"), tmp_path / "b").cfg.head_kind == "dense"
+    gated = _models(LatencyConfig(out=tmp_path, preset="tiny", head="gated"), tmp_path / "d")
+    assert load_artifact(gated.msdnet.folder).manifest["config"]["head_kind"] == "gated"
     given = LatencyConfig(out=tmp_path, model=pair.msdnet.folder, head="sparse")
     with pytest.raises(MsdnetError, match="random models"):
         _models(given, tmp_path / "c")

@@ -1,18 +1,23 @@
-"""The dense reconstruction head with fixed-statistics norms at 1/2, whose coarse-to-fine graph
+"""The dense reconstruction head with a fixed-statistics norm at 1/2, whose coarse-to-fine graph
 computes the 1/2 level only where the 1/4 level sees occupancy (``ModelConfig.head_kind``
 "gated").
 
 Same layers, weights and contract as :class:`~msdnet.training.head.ReconHead` (a dense checkpoint
-loads into it), with one change: the two GroupNorms of the 1/2 level (``post2``) normalise with
+loads into it), with one change: the GroupNorm after the 1/2 level's 3x3x3 conv normalises with
 fixed per-group statistics (:class:`FixedGroupNorm`) instead of statistics over the whole 1/2
-volume. ``training.calibrate_gated`` sets them on the training range, and refits the 1/4
-occupancy branch so that it says where the head decodes points (the gate). Every layer below
-1/4 is then a function of a voxel's 3x3x3 neighbourhood alone, so :meth:`GatedReconHead.sparse`
-grows the occupied set coarse to fine and gives exactly the dense values where it computes:
+volume, which only the dense conv could give. The norm before the conv keeps its per-frame
+statistics: its input is the 2x up-sampling of the 1/4 level, one matmul over the 8,000 (lite)
+1/4 voxels, so the sparse graph computes them exactly. ``training.calibrate_gated`` sets the fixed
+statistics on the training range, and refits the 1/4 occupancy branch so that it says where the
+head decodes points (the gate). Every layer below 1/4 is then a function of a voxel's 3x3x3
+neighbourhood and of the whole-volume statistics of the up-sampling, so
+:meth:`GatedReconHead.sparse` grows the occupied set coarse to fine and gives exactly the dense
+values where it computes:
 
     1/8, 1/4   dense, as ReconHead (lite: 1,200 and 8,000 voxels)          -> x4, occupancy occ4
     1/4 gate   parents P = the 1/4 voxels with occ4 > gate; P+ = P grown by one voxel (3x3x3)
-    1/2 input  per voxel of P+: its 8 children's up-sampled features, norm, ReLU (rows)
+    1/2 input  every 1/4 voxel's 8 children's up-sampled features (rows, one matmul), their
+               GroupNorm statistics; norm and ReLU, kept for the voxels of P+
     1/2 conv   per child of P: 3x3x3 conv as a gather of 27 neighbour rows + one matmul
                (a rulebook, as the encoder's; every neighbour is a child of P+, or outside the
                volume: the dense conv's zero padding), norm, ReLU               -> x2, occ2
@@ -70,23 +75,45 @@ def fixed_from(gn: nn.GroupNorm) -> FixedGroupNorm:
 
 
 class GatedReconHead(ReconHead):
-    """ReconHead with fixed-statistics norms at 1/2 and the coarse-to-fine graph of the module
-    docstring."""
+    """ReconHead with a fixed-statistics norm after the 1/2 conv and the coarse-to-fine graph of
+    the module docstring."""
 
     def __init__(self, cfg: ModelConfig) -> None:
         super().__init__(cfg)
-        self.post2[0] = fixed_from(self.post2[0])  # GroupNorm -> ReLU -> (conv, GroupNorm, ReLU)
+        # post2: GroupNorm (exact: statistics of the up-sampled 1/4 rows) -> ReLU -> conv -> this
         self.post2[2][1] = fixed_from(self.post2[2][1])
         for name, v in (("child_dz", CHILD_DZ), ("child_dy", CHILD_DY), ("child_dx", CHILD_DX)):
             self.register_buffer(name, torch.tensor(v, dtype=torch.int64).reshape(1, 8), persistent=False)
-        d2, h2, w2 = self.shapes[1]
+        (d4, h4, w4), (d2, h2, w2) = self.shapes[0], self.shapes[1]
+        v4 = torch.arange(d4 * h4 * w4).unsqueeze(1)  # (V4, 1) every 1/4 voxel
+        zc = torch.div(v4, h4 * w4, rounding_mode="floor") * 2 + self.child_dz  # (V4, 8)
+        yc = torch.remainder(torch.div(v4, w4, rounding_mode="floor"), h4) * 2 + self.child_dy
+        xc = torch.remainder(v4, w4) * 2 + self.child_dx
+        inside = ((zc < d2) & (yc < h2) & (xc < w2)).float().unsqueeze(2)  # (V4, 8, 1) not cropped
+        self.register_buffer("inside_all", inside, persistent=False)
         k = torch.arange(27)  # tap (kz * 3 + ky) * 3 + kx, neighbour at (z + kz - 1, ...)
         taps = ((k // 9 - 1) * (h2 + 2) + (k // 3 % 3 - 1)) * (w2 + 2) + (k % 3 - 1)
         self.register_buffer("taps", taps.reshape(1, 27), persistent=False)  # in the padded volume
 
-    def norms(self) -> tuple[FixedGroupNorm, FixedGroupNorm]:
-        """The 1/2 level's two fixed norms (before the ReLU ahead of the conv, after the conv)."""
-        return self.post2[0], self.post2[2][1]
+    def fixed_norm(self) -> FixedGroupNorm:
+        """The 1/2 level's norm after its 3x3x3 conv, the one with fixed statistics."""
+        return self.post2[2][1]
+
+    def _half_input(self, x4: Tensor) -> Tensor:
+        """x4 (1, c4, D4, H4, W4) -> every 1/4 voxel's 8 children's conv input, ReLU(GroupNorm(up2))
+        (V4, 8, c2), exactly the dense volume's: the GroupNorm's statistics are those of the up-sampled
+        rows, cropped children left out (their rows are computed but never read)."""
+        norm, c2 = self.post2[0], self.up2.cout
+        u = rows(self.up2.proj, x4.reshape(self.c4, -1).t()).reshape(-1, 8, c2)  # (V4, child, c2)
+        g = norm.num_groups
+        mask = self.inside_all.unsqueeze(3)  # (V4, 8, 1, 1)
+        grouped = u.reshape(u.shape[0], 8, g, c2 // g)  # (V4, child, group, channel in group)
+        count = mask.sum() * (c2 // g)
+        mean = (grouped * mask).sum(dim=(0, 1, 3)) / count  # (G,)
+        var = ((grouped - mean.reshape(1, 1, g, 1)).pow(2) * mask).sum(dim=(0, 1, 3)) / count
+        scale = norm.weight / torch.sqrt(var + norm.eps).repeat_interleave(c2 // g)  # (c2,)
+        shift = norm.bias - mean.repeat_interleave(c2 // g) * scale
+        return torch.relu(u * scale + shift)
 
     def _conv_rows(self, gathered: Tensor) -> Tensor:
         """gathered (M, 27, c2_in) neighbour rows in tap order -> the 3x3x3 conv (M, c2)."""
@@ -109,9 +136,7 @@ class GatedReconHead(ReconHead):
         grown = nn.functional.max_pool3d(passed, 3, stride=1, padding=1)  # P+ : P and its neighbours
         par = torch.nonzero(grown.reshape(-1)).reshape(-1)  # (K,) 1/4 voxels whose children are read
         is_p = passed.reshape(-1).index_select(0, par) > 0  # (K,) in P: its children are computed
-        f4 = x4.reshape(self.c4, -1).index_select(1, par).t()  # (K, c4)
-        n1, n2 = self.norms()
-        u = torch.relu(n1.on_rows(rows(self.up2.proj, f4).reshape(-1, 8, c2)))  # (K, child, c2)
+        u = self._half_input(x4).index_select(0, par)  # (K, child, c2)
         z = torch.div(par, h4 * w4, rounding_mode="floor").unsqueeze(1) * 2 + self.child_dz  # (K, 8)
         y = torch.remainder(torch.div(par, w4, rounding_mode="floor"), h4).unsqueeze(1) * 2 + self.child_dy
         x = torch.remainder(par, w4).unsqueeze(1) * 2 + self.child_dx
@@ -125,7 +150,7 @@ class GatedReconHead(ReconHead):
         child = torch.nonzero(inside & is_p.unsqueeze(1).expand(-1, 8).reshape(-1)).reshape(-1)  # (M,)
         nb = lookup.index_select(0, (padded.index_select(0, child).unsqueeze(1) + self.taps).reshape(-1))
         gathered = table.index_select(0, nb).reshape(-1, 27, c2)  # (M, tap, c2)
-        x2 = torch.relu(n2.on_rows(self._conv_rows(gathered)))  # (M, c2)
+        x2 = torch.relu(self.fixed_norm().on_rows(self._conv_rows(gathered)))  # (M, c2)
         occ2 = torch.sigmoid(rows(self.occ[1], x2)).reshape(-1)  # (M,)
         parent = occ4.reshape(-1).index_select(0, par).unsqueeze(1).expand(-1, 8).reshape(-1)
         gate_occ = torch.minimum(occ2, parent.index_select(0, child))
