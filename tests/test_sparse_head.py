@@ -90,6 +90,23 @@ def test_gated_head_norms_nothing_over_the_half_volume() -> None:
     head.load_state_dict(dense.state_dict())  # the same keys: a dense head's weights load
 
 
+def test_gated_sparse_is_exact_where_the_half_grid_crops_children() -> None:
+    """On an odd grid the 1/2 level crops the last children of the 1/4 level: they count neither in
+    the first norm's statistics nor as neighbours (the dense conv's zero padding)."""
+    torch.manual_seed(4)
+    cfg = dataclasses.replace(tiny_config(), head_kind="gated", grid=ODD)
+    head = build_head(cfg).eval()
+    norm = head.fixed_norm()
+    norm.fold(torch.rand(norm.num_groups) - 0.5, torch.rand(norm.num_groups) + 0.3)
+    x = torch.randn(1, *bev_shape(cfg))
+    with one_torch_thread(), torch.no_grad():
+        occ, off = head.packed(x)
+        s_occ, s_off, vox, _ = head.sparse(x, torch.zeros(1))
+    assert head.cropped and vox.tolist() == list(range(occ[0, 0].numel()))
+    torch.testing.assert_close(s_occ, occ.reshape(8, -1).t(), rtol=0, atol=1e-6)
+    torch.testing.assert_close(s_off, off.reshape(8, 3, -1).permute(2, 0, 1), rtol=0, atol=1e-6)
+
+
 def test_gated_sparse_skips_the_half_level_where_the_quarter_is_empty() -> None:
     """With a gate, 1/2 voxels are computed only under the 1/4 voxels above it: a 1/2 voxel whose
     parent fails the gate never appears, whatever its own occupancy."""

@@ -89,8 +89,10 @@ class GatedReconHead(ReconHead):
         zc = torch.div(v4, h4 * w4, rounding_mode="floor") * 2 + self.child_dz  # (V4, 8)
         yc = torch.remainder(torch.div(v4, w4, rounding_mode="floor"), h4) * 2 + self.child_dy
         xc = torch.remainder(v4, w4) * 2 + self.child_dx
-        inside = ((zc < d2) & (yc < h2) & (xc < w2)).float().unsqueeze(2)  # (V4, 8, 1) not cropped
+        inside = ((zc < d2) & (yc < h2) & (xc < w2)).float()  # (V4, 8) children not cropped
         self.register_buffer("inside_all", inside, persistent=False)
+        self.cropped = bool(inside.min() == 0)  # lite and paper: 2 x the 1/4 grid is the 1/2 grid
+        self.half_count = d2 * h2 * w2  # 1/2 voxels the norm's statistics are over
         k = torch.arange(27)  # tap (kz * 3 + ky) * 3 + kx, neighbour at (z + kz - 1, ...)
         taps = ((k // 9 - 1) * (h2 + 2) + (k // 3 % 3 - 1)) * (w2 + 2) + (k % 3 - 1)
         self.register_buffer("taps", taps.reshape(1, 27), persistent=False)  # in the padded volume
@@ -101,19 +103,22 @@ class GatedReconHead(ReconHead):
 
     def _half_input(self, x4: Tensor) -> Tensor:
         """x4 (1, c4, D4, H4, W4) -> every 1/4 voxel's 8 children's conv input, ReLU(GroupNorm(up2))
-        (V4, 8, c2), exactly the dense volume's: the GroupNorm's statistics are those of the up-sampled
-        rows, cropped children left out (their rows are computed but never read)."""
+        (V4, 8, c2), exactly the dense volume's: the GroupNorm's statistics are those of the
+        up-sampled rows (one pass of sums and sums of squares), cropped children left out."""
         norm, c2 = self.post2[0], self.up2.cout
-        u = rows(self.up2.proj, x4.reshape(self.c4, -1).t()).reshape(-1, 8, c2)  # (V4, child, c2)
-        g = norm.num_groups
-        mask = self.inside_all.unsqueeze(3)  # (V4, 8, 1, 1)
-        grouped = u.reshape(u.shape[0], 8, g, c2 // g)  # (V4, child, group, channel in group)
-        count = mask.sum() * (c2 // g)
-        mean = (grouped * mask).sum(dim=(0, 1, 3)) / count  # (G,)
-        var = ((grouped - mean.reshape(1, 1, g, 1)).pow(2) * mask).sum(dim=(0, 1, 3)) / count
-        scale = norm.weight / torch.sqrt(var + norm.eps).repeat_interleave(c2 // g)  # (c2,)
-        shift = norm.bias - mean.repeat_interleave(c2 // g) * scale
-        return torch.relu(u * scale + shift)
+        u = rows(self.up2.proj, x4.reshape(self.c4, -1).t())  # (V4, 8 * c2), column child * c2 + c
+        g, per = norm.num_groups, c2 // norm.num_groups
+        counted = (
+            u * self.inside_all.reshape(-1, 8, 1).expand(-1, -1, c2).reshape(u.shape) if self.cropped else u
+        )
+        s1 = counted.sum(0).reshape(8, g, per).sum(dim=(0, 2))  # (G,)
+        s2 = (counted * u).sum(0).reshape(8, g, per).sum(dim=(0, 2))
+        n = self.half_count * per
+        mean = s1 / n
+        var = torch.clamp(s2 / n - mean * mean, min=0.0)
+        scale = norm.weight / torch.sqrt(var + norm.eps).repeat_interleave(per)  # (c2,)
+        shift = norm.bias - mean.repeat_interleave(per) * scale
+        return torch.relu(u.reshape(-1, 8, c2) * scale + shift)
 
     def _conv_rows(self, gathered: Tensor) -> Tensor:
         """gathered (M, 27, c2_in) neighbour rows in tap order -> the 3x3x3 conv (M, c2)."""
