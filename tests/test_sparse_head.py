@@ -203,6 +203,17 @@ def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
     assert np.all(near <= 1e-5)  # a gate only removes points (gated head: same sums, other order)
 
 
+def test_a_gate_nothing_passes_gives_an_empty_cloud(sparse_pipe: Pipeline) -> None:
+    """No voxel above the gate (at 1/4 for the gated head): zero rows through every matmul and
+    reshape of the graph, an empty cloud, no error."""
+    sparse_pipe.gate = float(np.nextafter(np.float32(1.0), np.float32(0.0)))
+    try:
+        res = sparse_pipe(_scan(sparse_pipe), steps=2)
+    finally:
+        sparse_pipe.gate = None
+    assert res.points.shape == (0, 3) and res.stats["head_voxels"] == 0
+
+
 def _sparse_outputs(pipe: Pipeline, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(children occupancy (N, 8), gate occupancy (N,)) of every half-scale voxel (gate 0)."""
     pipe(scan, steps=4)

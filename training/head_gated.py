@@ -124,7 +124,7 @@ class GatedReconHead(ReconHead):
         """gathered (M, 27, c2_in) neighbour rows in tap order -> the 3x3x3 conv (M, c2)."""
         conv = self.post2[2][0]
         w = conv.weight.permute(2, 3, 4, 1, 0).reshape(-1, conv.out_channels)  # (27 * cin, cout)
-        return gathered.reshape(gathered.shape[0], -1) @ w
+        return gathered.reshape(-1, w.shape[0]) @ w  # not (M, -1): M may be 0
 
     def sparse(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Coarse-to-fine inference, batch 1 (module docstring), with ``ReconHead.sparse``'s
