@@ -19,6 +19,7 @@ from msdnet.export.gate import keep_all_gate
 from msdnet.runtime.engine.pipeline import Pipeline
 
 RANDOM_VOXEL_SHARE = 0.05  # random weights: share of the half-scale voxels the gate keeps
+CLOSE_M = 1e-4  # m: keep-every-point points "equal within rounding" (gated head: other sum order)
 
 
 def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: int = 0) -> str:
@@ -79,4 +80,9 @@ def head_comparison(
         "points_lost_share": 1.0 - len(sparse.points) / max(1, len(dense.points)),
         "keep_all_gate": kag,
         "keep_all_equal": bool(np.array_equal(keep_all.points, dense.points)),
+        # the gated head's 1/2 conv is a gather + matmul: the same sums in another order
+        "keep_all_close": bool(
+            keep_all.points.shape == dense.points.shape
+            and np.allclose(keep_all.points, dense.points, rtol=0, atol=CLOSE_M)
+        ),
     }

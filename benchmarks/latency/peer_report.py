@@ -72,7 +72,7 @@ def head_section(res: dict[str, Any]) -> list[str]:
         "",
         f"Ratio {_fmt(h['head_over_dense_head'], 3)}; points lost to the gate {h['points_lost_share']:.2%}. "
         f"With this input's keep-every-point gate ({h['keep_all_gate']:.4g}) the decoded points "
-        f"{'equal' if h['keep_all_equal'] else 'DIFFER FROM'} the dense head's.",
+        f"{_keep_all_words(h)} the dense head's.",
     ]
     if res["models"]["msdnet"]["weights"] == "random":
         out.append(
@@ -149,3 +149,12 @@ def peers_section(res: dict[str, Any]) -> list[str]:
         for engine, why in row["failed"].items():
             out.append(f"- {ENGINE_LABELS[engine]}, {STAGE_NAMES.get(stage, stage)}: {why}")
     return out
+
+
+def _keep_all_words(h: dict[str, Any]) -> str:
+    """How the keep-every-point gate's points compare with the dense head's."""
+    if h["keep_all_equal"]:
+        return "equal"
+    if h.get("keep_all_close"):
+        return "equal within 0.1 mm (the same sums in another order) to"
+    return "DIFFER FROM"
