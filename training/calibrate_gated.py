@@ -32,13 +32,14 @@ from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.training.batch import make_encoder_input
-from msdnet.training.checkpoint import load_checkpoint, save_checkpoint
+from msdnet.training.checkpoint import CheckpointState, load_checkpoint, save_checkpoint
+from msdnet.training.config import ModelConfig
 from msdnet.training.data import make_splits
 from msdnet.training.head_gated import FixedGroupNorm, GatedReconHead
 from msdnet.training.models import StudentModel, bev_shape, build_model
 
 
-def gated_student(checkpoint: str | Path) -> tuple[StudentModel, object, object]:
+def gated_student(checkpoint: str | Path) -> tuple[StudentModel, ModelConfig, CheckpointState]:
     """(student with the gated head and the checkpoint's weights, its config, CheckpointState);
     the fixed norm holds the GroupNorm's affine, statistics not yet folded in."""
     dense, cfg, state = load_checkpoint(checkpoint)
