@@ -59,7 +59,7 @@ def test_two_frames_pool_like_one_volume() -> None:
     hook.remove()
     g = norm.num_groups
     both = torch.cat([x.reshape(g, -1) for x in seen[: len(zs)]], 1).double()  # first pass: 2 frames
-    mean, var = (torch.tensor(report[0][k], dtype=torch.float64) for k in ("mean", "var"))
+    mean, var = (torch.tensor(report[k], dtype=torch.float64) for k in ("mean", "var"))
     torch.testing.assert_close(mean, both.mean(1), rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(var, both.var(1, unbiased=False), rtol=1e-4, atol=1e-6)
 

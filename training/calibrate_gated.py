@@ -73,34 +73,32 @@ def loop_features(
     return out
 
 
-def calibrate(model: StudentModel, features: list[Tensor]) -> list[dict[str, list[float]]]:
+def calibrate(model: StudentModel, features: list[Tensor]) -> dict[str, list[float]]:
     """Fold statistics into the gated head's fixed norm from ``features`` (once: it must still hold
-    the GroupNorm's affine); -> [its pooled mean and var per group]."""
+    the GroupNorm's affine); -> its pooled mean and var per group."""
     head = model.teacher.head
     if not isinstance(head, GatedReconHead):
         raise TypeError("calibrate needs a student with the gated head")
-    report = []
-    for norm in (head.fixed_norm(),):
-        sums = torch.zeros(norm.num_groups, 3, dtype=torch.float64)  # count, sum, sum of squares
+    norm = head.fixed_norm()
+    sums = torch.zeros(norm.num_groups, 3, dtype=torch.float64)  # count, sum, sum of squares
 
-        def pre(mod: FixedGroupNorm, inp: tuple[Tensor, ...], acc: Tensor = sums) -> None:
-            g = inp[0].reshape(inp[0].shape[0], mod.num_groups, -1).double()  # (B, G, rest)
-            acc[:, 0] += g.shape[0] * g.shape[2]
-            acc[:, 1] += g.sum(dim=(0, 2))
-            acc[:, 2] += g.pow(2).sum(dim=(0, 2))
+    def pre(mod: FixedGroupNorm, inp: tuple[Tensor, ...]) -> None:
+        g = inp[0].reshape(inp[0].shape[0], mod.num_groups, -1).double()  # (B, G, rest)
+        sums[:, 0] += g.shape[0] * g.shape[2]
+        sums[:, 1] += g.sum(dim=(0, 2))
+        sums[:, 2] += g.pow(2).sum(dim=(0, 2))
 
-        hook = norm.register_forward_pre_hook(pre)
-        try:
-            with torch.no_grad():
-                for z in features:
-                    model.head.packed(z)
-        finally:
-            hook.remove()
-        mean = sums[:, 1] / sums[:, 0]
-        var = (sums[:, 2] / sums[:, 0] - mean.pow(2)).clamp_min(0)
-        norm.fold(mean.float(), var.float())
-        report.append({"mean": mean.tolist(), "var": var.tolist()})
-    return report
+    hook = norm.register_forward_pre_hook(pre)
+    try:
+        with torch.no_grad():
+            for z in features:
+                model.head.packed(z)
+    finally:
+        hook.remove()
+    mean = sums[:, 1] / sums[:, 0]
+    var = (sums[:, 2] / sums[:, 0] - mean.pow(2)).clamp_min(0)
+    norm.fold(mean.float(), var.float())
+    return {"mean": mean.tolist(), "var": var.tolist()}
 
 
 def quarter_targets(model: StudentModel, features: list[Tensor]) -> tuple[Tensor, Tensor]:
@@ -181,7 +179,7 @@ def main(
     report = calibrate(model, features)
     fit = fit_quarter_gate(model, features)
     save_checkpoint(out, model, cfg, dataclasses.replace(state, init=str(checkpoint)))
-    click.echo(f"fixed 1/2 norm: mean {np.round(report[0]['mean'], 3)}, var {np.round(report[0]['var'], 3)}")
+    click.echo(f"fixed 1/2 norm: mean {np.round(report['mean'], 3)}, var {np.round(report['var'], 3)}")
     click.echo(
         f"1/4 gate: BCE to the decoded occupancy {fit['bce_before']:.4f} -> {fit['bce_after']:.4f}, "
         f"{fit['kept_at_half']:.1%} of the 1/4 voxels above 0.5"

@@ -85,17 +85,25 @@ class GatedReconHead(ReconHead):
         for name, v in (("child_dz", CHILD_DZ), ("child_dy", CHILD_DY), ("child_dx", CHILD_DX)):
             self.register_buffer(name, torch.tensor(v, dtype=torch.int64).reshape(1, 8), persistent=False)
         (d4, h4, w4), (d2, h2, w2) = self.shapes[0], self.shapes[1]
-        v4 = torch.arange(d4 * h4 * w4).unsqueeze(1)  # (V4, 1) every 1/4 voxel
-        zc = torch.div(v4, h4 * w4, rounding_mode="floor") * 2 + self.child_dz  # (V4, 8)
-        yc = torch.remainder(torch.div(v4, w4, rounding_mode="floor"), h4) * 2 + self.child_dy
-        xc = torch.remainder(v4, w4) * 2 + self.child_dx
-        inside = ((zc < d2) & (yc < h2) & (xc < w2)).float()  # (V4, 8) children not cropped
-        self.register_buffer("inside_all", inside, persistent=False)
+        _, _, _, inside = self._children(torch.arange(d4 * h4 * w4))  # every 1/4 voxel's
+        self.register_buffer("inside_all", inside.float(), persistent=False)  # (V4, 8) not cropped
         self.cropped = bool(inside.min() == 0)  # lite and paper: 2 x the 1/4 grid is the 1/2 grid
         self.half_count = d2 * h2 * w2  # 1/2 voxels the norm's statistics are over
         k = torch.arange(27)  # tap (kz * 3 + ky) * 3 + kx, neighbour at (z + kz - 1, ...)
         taps = ((k // 9 - 1) * (h2 + 2) + (k // 3 % 3 - 1)) * (w2 + 2) + (k % 3 - 1)
         self.register_buffer("taps", taps.reshape(1, 27), persistent=False)  # in the padded volume
+
+    def _children(self, parents: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """parents (K,) linear 1/4 indices -> their children's 1/2 coordinates z, y, x (K, 8) in
+        child order ``(dz * 2 + dy) * 2 + dx``, and (K, 8) bool: inside the 1/2 grid (not cropped)."""
+        (_, h4, w4), (d2, h2, w2) = self.shapes[0], self.shapes[1]
+        z = torch.div(parents, h4 * w4, rounding_mode="floor").unsqueeze(1) * 2 + self.child_dz
+        y = (
+            torch.remainder(torch.div(parents, w4, rounding_mode="floor"), h4).unsqueeze(1) * 2
+            + self.child_dy
+        )
+        x = torch.remainder(parents, w4).unsqueeze(1) * 2 + self.child_dx
+        return z, y, x, (z < d2) & (y < h2) & (x < w2)
 
     def fixed_norm(self) -> FixedGroupNorm:
         """The 1/2 level's norm after its 3x3x3 conv, the one with fixed statistics."""
@@ -131,21 +139,17 @@ class GatedReconHead(ReconHead):
         outputs: occupancy (N, 8), offsets (N, 8, 3), voxels (N,) increasing half-scale index
         ``(z2 * H2 + y2) * W2 + x2``, gate_occupancy (N,) = min(own 1/2 occupancy, parent's 1/4
         occupancy) > gate. With gate 0 every voxel is kept and the outputs equal :meth:`packed`'s."""
-        (_, h4, w4), (d2, h2, w2) = self.shapes[0], self.shapes[1]
+        d2, h2, w2 = self.shapes[1]
         c2 = self.up2.cout
-        b, _, h8, w8 = features.shape
-        x = self.lift(features).reshape(b, self.c4, self.d8, h8, w8)  # channel-major re-read
-        x4 = self.post4(self._crop(self.up4(self.conv8(torch.relu(x))), 0))  # (1, c4, D4, H4, W4)
+        x4 = self._quarter(features)  # (1, c4, D4, H4, W4)
         occ4 = torch.sigmoid(self.occ[0](x4))  # (1, 1, D4, H4, W4)
         passed = (occ4 > gate).float()
         grown = nn.functional.max_pool3d(passed, 3, stride=1, padding=1)  # P+ : P and its neighbours
         par = torch.nonzero(grown.reshape(-1)).reshape(-1)  # (K,) 1/4 voxels whose children are read
         is_p = passed.reshape(-1).index_select(0, par) > 0  # (K,) in P: its children are computed
         u = self._half_input(x4).index_select(0, par)  # (K, child, c2)
-        z = torch.div(par, h4 * w4, rounding_mode="floor").unsqueeze(1) * 2 + self.child_dz  # (K, 8)
-        y = torch.remainder(torch.div(par, w4, rounding_mode="floor"), h4).unsqueeze(1) * 2 + self.child_dy
-        x = torch.remainder(par, w4).unsqueeze(1) * 2 + self.child_dx
-        inside = ((z < d2) & (y < h2) & (x < w2)).reshape(-1)  # (K * 8,) the crop to 1/2's grid
+        z, y, x, inside = self._children(par)  # (K, 8) each
+        inside = inside.reshape(-1)  # (K * 8,) the crop to 1/2's grid
         padded = (((z + 1) * (h2 + 2) + y + 1) * (w2 + 2) + x + 1).reshape(-1)  # (K * 8,)
         zero_row = u.shape[0] * 8  # the table's appended zero row: padding and cropped children
         lookup = torch.full(((d2 + 2) * (h2 + 2) * (w2 + 2),), zero_row, dtype=torch.int64)
