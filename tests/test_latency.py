@@ -39,7 +39,8 @@ RATIOS = (
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("latency") / "out"
-    r = CliRunner().invoke(latency_command, ["--quick", "--out", str(out)], catch_exceptions=False)
+    args = ["--quick", "--against-old", "--out", str(out)]
+    r = CliRunner().invoke(latency_command, args, catch_exceptions=False)
     assert r.exit_code == 0, r.output
     return out, json.loads((out / "results.json").read_text(encoding="utf-8"))
 
@@ -220,3 +221,18 @@ def test_random_models_take_the_head_and_loop_steps_asked_for(tmp_path):
     given = LatencyConfig(out=tmp_path, model=pair.msdnet.folder, head="sparse")
     with pytest.raises(MsdnetError, match="random models"):
         _models(given, tmp_path / "c")
+    with pytest.raises(MsdnetError, match="--against-old: random models only"):
+        _models(LatencyConfig(out=tmp_path, model=pair.msdnet.folder, against_old=True), tmp_path / "e")
+
+
+def test_quick_run_times_the_old_graphs_of_the_same_model(quick):
+    out, res = quick
+    old = res["against_old"]
+    assert old["old"]["steps"] == 50 and old["old"]["head"] == "dense" and old["old"]["provider"] == "cpu"
+    assert old["new"]["steps"] == res["models"]["msdnet"]["steps"] and old["new"]["head"] != "dense"
+    assert old["new"]["total_ms"] == pytest.approx(old["new_over_old"] * old["old"]["total_ms"])
+    assert len(old["new_over_old_per_pair"]) == old["repeats"] >= 3
+    assert set(old["old"]["stages_ms"]) == set(old["new"]["stages_ms"]) == set(STAGES)
+    assert res["ratios"]["total_over_old_graphs"] == old["new_over_old"]
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "Against the graphs before issue 23" in md and "total / the old graphs' total" in md

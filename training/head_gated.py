@@ -6,8 +6,9 @@ Same layers, weights and contract as :class:`~msdnet.training.head.ReconHead` (a
 loads into it), with one change: the GroupNorm after the 1/2 level's 3x3x3 conv normalises with
 fixed per-group statistics (:class:`FixedGroupNorm`) instead of statistics over the whole 1/2
 volume, which only the dense conv could give. The norm before the conv keeps its per-frame
-statistics: its input is the 2x up-sampling of the 1/4 level, one matmul over the 8,000 (lite)
-1/4 voxels, so the sparse graph computes them exactly. ``training.calibrate_gated`` sets the fixed
+statistics: its input is the 2x up-sampling of the 1/4 level, a linear map of the 8,000 (lite)
+1/4 voxels' rows, so the sparse graph computes them exactly from those rows' sum and c4 x c4 Gram
+matrix. ``training.calibrate_gated`` sets the fixed
 statistics on the training range, and refits the 1/4 occupancy branch so that it says where the
 head decodes points (the gate). Every layer below 1/4 is then a function of a voxel's 3x3x3
 neighbourhood and of the whole-volume statistics of the up-sampling, so
@@ -16,8 +17,9 @@ values where it computes:
 
     1/8, 1/4   dense, as ReconHead (lite: 1,200 and 8,000 voxels)          -> x4, occupancy occ4
     1/4 gate   parents P = the 1/4 voxels with occ4 > gate; P+ = P grown by one voxel (3x3x3)
-    1/2 input  every 1/4 voxel's 8 children's up-sampled features (rows, one matmul), their
-               GroupNorm statistics; norm and ReLU, kept for the voxels of P+
+    1/2 input  the GroupNorm statistics of every 1/4 voxel's 8 up-sampled children (from the
+               1/4 rows' sum and Gram matrix); the children of P+ up-sampled (rows, one matmul),
+               normalised, ReLU
     1/2 conv   per child of P: 3x3x3 conv as a gather of 27 neighbour rows + one matmul
                (a rulebook, as the encoder's; every neighbour is a child of P+, or outside the
                volume: the dense conv's zero padding), norm, ReLU               -> x2, occ2
@@ -109,24 +111,42 @@ class GatedReconHead(ReconHead):
         """The 1/2 level's norm after its 3x3x3 conv, the one with fixed statistics."""
         return self.post2[2][1]
 
-    def _half_input(self, x4: Tensor) -> Tensor:
-        """x4 (1, c4, D4, H4, W4) -> every 1/4 voxel's 8 children's conv input, ReLU(GroupNorm(up2))
-        (V4, 8, c2), exactly the dense volume's: the GroupNorm's statistics are those of the
-        up-sampled rows (one pass of sums and sums of squares), cropped children left out."""
-        norm, c2 = self.post2[0], self.up2.cout
-        u = rows(self.up2.proj, x4.reshape(self.c4, -1).t())  # (V4, 8 * c2), column child * c2 + c
+    def _half_input(self, x4: Tensor, par: Tensor) -> Tensor:
+        """x4 (1, c4, D4, H4, W4), par (K,) 1/4 voxels -> their 8 children's conv input,
+        ReLU(GroupNorm(up2)) (K, 8, c2), exactly the dense volume's.
+
+        The GroupNorm's statistics are over every 1/4 voxel's up-sampled rows u = x W_k + b_k
+        (child k; cropped children left out), but u is never formed for all of them: with
+        x' = x - mean(x) (centred, so the sums of squares do not cancel), the sums per child and
+        channel are S1 W_k + n_k b'_k and diag(W_k^T G_k W_k) + 2 b'_k (S1 W_k) + n_k b'_k^2, where
+        S1 = sum x', G = x'^T x' (a c4 x c4 Gram matrix: lite 8,000 x 32 x 32) and b' = mean(x) W + b.
+        Only the K parents' rows are then up-sampled (one matmul) and normalised."""
+        norm, c2, c4 = self.post2[0], self.up2.cout, self.c4
+        x = x4.reshape(c4, -1).t()  # (V4, c4) rows of the 1/4 volume
+        shift = x.mean(0)  # (c4,)
+        xc = x - shift  # (V4, c4)
+        w = self.up2.proj.weight.reshape(8, c2, c4).permute(0, 2, 1)  # (child, c4, c2)
+        b = (shift @ w + self.up2.proj.bias.reshape(8, c2)).unsqueeze(1)  # (child, 1, c2) = b'
+        if self.cropped:  # per child, only the 1/4 voxels whose child k is inside the 1/2 grid
+            m = self.inside_all.t().unsqueeze(2)  # (child, V4, 1)
+            s1 = (m * xc).sum(1, keepdim=True)  # (child, 1, c4)
+            gram = (m * xc).transpose(1, 2) @ xc  # (child, c4, c4)
+            n = m.sum(1, keepdim=True)  # (child, 1, 1)
+        else:
+            s1 = xc.sum(0).reshape(1, 1, c4)
+            gram = (xc.t() @ xc).unsqueeze(0)  # (1, c4, c4)
+            n = torch.full((1, 1, 1), float(x.shape[0]))
+        s1w = s1 @ w  # (child, 1, c2)
+        sum1 = s1w + n * b  # (child, 1, c2) sum of u
+        sum2 = ((gram @ w) * w).sum(1, keepdim=True) + 2.0 * b * s1w + n * b * b  # sum of u^2
         g, per = norm.num_groups, c2 // norm.num_groups
-        counted = (
-            u * self.inside_all.reshape(-1, 8, 1).expand(-1, -1, c2).reshape(u.shape) if self.cropped else u
-        )
-        s1 = counted.sum(0).reshape(8, g, per).sum(dim=(0, 2))  # (G,)
-        s2 = (counted * u).sum(0).reshape(8, g, per).sum(dim=(0, 2))
-        n = self.half_count * per
-        mean = s1 / n
-        var = torch.clamp(s2 / n - mean * mean, min=0.0)
+        count = self.half_count * per
+        mean = sum1.reshape(8, g, per).sum(dim=(0, 2)) / count  # (G,)
+        var = torch.clamp(sum2.reshape(8, g, per).sum(dim=(0, 2)) / count - mean * mean, min=0.0)
         scale = norm.weight / torch.sqrt(var + norm.eps).repeat_interleave(per)  # (c2,)
-        shift = norm.bias - mean.repeat_interleave(per) * scale
-        return torch.relu(u.reshape(-1, 8, c2) * scale + shift)
+        shift2 = norm.bias - mean.repeat_interleave(per) * scale
+        u = rows(self.up2.proj, x.index_select(0, par))  # (K, 8 * c2), column child * c2 + c
+        return torch.relu(u.reshape(-1, 8, c2) * scale + shift2)
 
     def _conv_rows(self, gathered: Tensor) -> Tensor:
         """gathered (M, 27, c2_in) neighbour rows in tap order -> the 3x3x3 conv (M, c2)."""
@@ -147,7 +167,7 @@ class GatedReconHead(ReconHead):
         grown = nn.functional.max_pool3d(passed, 3, stride=1, padding=1)  # P+ : P and its neighbours
         par = torch.nonzero(grown.reshape(-1)).reshape(-1)  # (K,) 1/4 voxels whose children are read
         is_p = passed.reshape(-1).index_select(0, par) > 0  # (K,) in P: its children are computed
-        u = self._half_input(x4).index_select(0, par)  # (K, child, c2)
+        u = self._half_input(x4, par)  # (K, child, c2)
         z, y, x, inside = self._children(par)  # (K, 8) each
         inside = inside.reshape(-1)  # (K * 8,) the crop to 1/2's grid
         padded = (((z + 1) * (h2 + 2) + y + 1) * (w2 + 2) + x + 1).reshape(-1)  # (K * 8,)

@@ -55,6 +55,12 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     default=None,
     help="torch.compile among the peers (compiles for minutes) [on; quick off].",
 )
+@click.option(
+    "--against-old",
+    is_flag=True,
+    help="Random models: also time the same model as its graphs were before issue 23 (dense head, "
+    "old up-sampling, T_m 50, cpu), interleaved in this run.",
+)
 @click.option("--data", type=click.Path(path_type=Path), help="Dataset root (Table III quality).")
 @click.option("--dataset", type=click.Choice(DATASET_NAMES), help="Layout of --data.")
 @click.option("--frames", type=click.IntRange(min=1), help="Frames scored per T_m [10; quick 1].")
@@ -80,6 +86,7 @@ def latency_command(
     int8: bool,
     peers: bool,
     torch_compile: bool | None,
+    against_old: bool,
     data: Path | None,
     dataset: str | None,
     frames: int | None,
@@ -109,6 +116,7 @@ def latency_command(
         "int8": int8,
         "peers": peers,
         "torch_compile": torch_compile,
+        "against_old": against_old,
         "data": data,
         "dataset": dataset,
         "frames": frames,

@@ -21,6 +21,7 @@ STAGE_NAMES = {
 }
 PAPER_PRESET_S = 0.6 * 0.384  # issue 14: 0.6 x the 0.384 s measured before the sparse head
 LITE_T50_MS = 45.0  # issue 14: the lite model at T_m = 50
+OLD_GRAPHS_SHARE = 0.35  # issue 23: paper-width total <= 0.35 x the graphs before it, same run
 
 
 def goal_rows(res: dict[str, Any]) -> list[tuple[str, float, str, float]]:
@@ -36,6 +37,9 @@ def goal_rows(res: dict[str, Any]) -> list[tuple[str, float, str, float]]:
             0.8,
         ),
     ]
+    old = res.get("against_old", {})
+    if "new_over_old" in old:
+        rows.append(("total / the old graphs' total, same run", old["new_over_old"], "<=", OLD_GRAPHS_SHARE))
     if res["preset"] == "paper":
         rows.append(
             ("paper preset, s per frame (0.6 x 0.384 s)", total / 1e3, "<=", round(PAPER_PRESET_S, 4))
@@ -79,6 +83,34 @@ def head_section(res: dict[str, Any]) -> list[str]:
             "Random weights: a voxel's own occupancy says nothing of its children's, so the points "
             "lost here measure nothing; the shipped models' calibrated gates keep 99 % of the points."
         )
+    return out
+
+
+def old_section(res: dict[str, Any]) -> list[str]:
+    """``--against-old``: this run's model against the same weights as the graphs were before issue 23."""
+    old = res.get("against_old", {})
+    if "new_over_old" not in old:
+        return []
+    out = [
+        "",
+        "## Against the graphs before issue 23 (same weights and input, interleaved in this run)",
+        "",
+        "| graphs | T_m | head | provider | " + " | ".join(STAGE_NAMES.values()) + " | total ms | points |",
+        "|---|---:|---|---|" + "---:|" * (len(STAGE_NAMES) + 2),
+    ]
+    for key, label in (("old", f"old ({old['old']['up_sampling']} up-sampling)"), ("new", "this run's")):
+        r = old[key]
+        cells = " | ".join(_fmt(r["stages_ms"].get(s)) for s in STAGE_NAMES)
+        out.append(
+            f"| {label} | {r['steps']} | {r['head']} | {r['provider']} | {cells} | "
+            f"{_fmt(r['total_ms'], 1)} | {r['decoded']} |"
+        )
+    pairs = old["new_over_old_per_pair"]
+    out += [
+        "",
+        f"New / old total **{_fmt(old['new_over_old'], 3)}** (medians of {old['repeats']} calls each; "
+        f"per interleaved pair {min(pairs):.3f}–{max(pairs):.3f}).",
+    ]
     return out
 
 

@@ -23,6 +23,7 @@ from msdnet.benchmarks.latency.peer_report import (  # noqa: E402
     auto_section,
     goal_rows,
     head_section,
+    old_section,
     peers_section,
 )
 
@@ -252,7 +253,8 @@ def _details(res: dict[str, Any]) -> list[str]:
 
 def markdown(res: dict[str, Any]) -> str:
     """results.md: machine, input, stages, goals, Tables III and IV, sweeps, details, INT8, notes."""
-    out = _header(res) + _tables(res) + head_section(res) + auto_section(res) + peers_section(res)
+    out = _header(res) + _tables(res) + head_section(res) + old_section(res) + auto_section(res)
+    out += peers_section(res)
     out += _details(res)
     out += ["", "![stages](stages.png) ![steps](steps.png) ![points](points.png)", ""]
     out += [f"- {n}" for n in res.get("notes", [])]

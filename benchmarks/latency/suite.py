@@ -31,6 +31,7 @@ import numpy as np
 from msdnet.benchmarks.latency.compare import int8_comparison, torch_comparison
 from msdnet.benchmarks.latency.head import choose_gate, head_comparison
 from msdnet.benchmarks.latency.models import KINDS, ModelPair, given_pair, preset_config, random_pair
+from msdnet.benchmarks.latency.old_graphs import old_comparison
 from msdnet.benchmarks.latency.peers import peer_comparison
 from msdnet.benchmarks.latency.report import write_outputs
 from msdnet.benchmarks.latency.runs import msdnet_timings, sweep
@@ -80,6 +81,7 @@ class LatencyConfig:
     peers: bool = True  # time the peer engines (OpenVINO, torch eager, torch.compile) per stage
     torch_compile: bool = True  # include torch.compile among the peers (compiles for minutes)
     peer_repeats: int = 5  # interleaved repeats per engine and stage
+    against_old: bool = False  # random models: time the old graphs in this run (latency/old_graphs.py)
 
     @property
     def sweep_repeats(self) -> int:
@@ -104,6 +106,8 @@ def _models(cfg: LatencyConfig, scratch: Path) -> ModelPair:
         if cfg.loop_steps is not None:
             base = replace(base, diffusion=replace(base.diffusion, sample_steps=cfg.loop_steps))
         return random_pair(base, scratch, cfg.seed, cfg.up_sampling)
+    if cfg.against_old:
+        raise MsdnetError("--against-old", "random models only (--preset): a given model has no old graphs")
     if cfg.head is not None or cfg.loop_steps is not None or cfg.up_sampling is not None:
         raise MsdnetError(
             "--head", "--head, --loop-steps and --up-sampling set up random models: not with --model"
@@ -228,6 +232,20 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             log("peer engines per stage (OpenVINO, torch eager, torch.compile) ...")
             model, reps = pair.msdnet.torch_model, cfg.peer_repeats
             peers = peer_comparison(model, msd, points, cfg.threads, reps, cfg.seed, cfg.torch_compile)
+        old: dict[str, Any] = {"note": "not run (--against-old: random models only)"}
+        if cfg.against_old:
+            log("the same model as its graphs were before issue 23, interleaved ...")
+            old = old_comparison(
+                msd,
+                points,
+                thr["msdnet"],
+                pair.cfg,
+                scratch,
+                cfg.threads,
+                _target(msd, cfg),
+                max(3, cfg.sweep_repeats),
+                cfg.seed,
+            )
         vox = voxelize_figures(grid, len(cols), msd.artifact.inputs.max_voxels, max(10, cfg.repeats))
         rss = peak_rss_mb(pair.msdnet.folder, msd.select_columns(points), cols, cfg.threads, thr["msdnet"])
         int8 = {}
@@ -284,7 +302,9 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "head_over_dense_head": head.get("head_over_dense_head", float("nan")),
             "engine_over_best_peer": peers.get("engine_over_best_peer", float("nan")),
             "engine_over_best_f32_peer": peers.get("engine_over_best_f32_peer", float("nan")),
+            "total_over_old_graphs": old.get("new_over_old", float("nan")),
         },
+        "against_old": old,
         "head": {**head, "gate_note": gate_note},
         "peers": peers,
         "provider_auto": {k: pipes[k].auto.to_json() for k in KINDS if pipes[k].auto is not None},

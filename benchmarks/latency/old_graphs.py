@@ -1,0 +1,96 @@
+"""``msdnet-bench latency --against-old``: the same random MSDNet exported as its graphs were before
+issue 23, timed in the same run as the new ones (issue 23: "paper-width total <= 0.35 x today's in
+the same run, old graphs vs new").
+
+The old graphs: the dense reconstruction head (no coarse-to-fine graph), the head's 2x up-sampling
+as a 1x1x1 conv and an 8-D ``Transpose`` (``Up2x`` "depth_to_space", the export form before
+2026-12-03), T_m = 50 DDIM steps, ``--provider cpu``. The weights are the new model's: the same
+preset, seed and initialisation order (only ``head_kind`` and the step count differ, neither of
+which changes a weight), so the two differ only in what the engine runs. Its threshold leaves the
+same number of points as the new model's (``calibrate_threshold`` to the run's target).
+
+Both pipelines run the run's input in turn, the order swapped every repeat, so both see the same
+load; the result holds each one's stage medians and ``new_over_old`` = new total / old total.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from msdnet.benchmarks.latency.models import _export
+from msdnet.benchmarks.latency.timing import Scan, StageRuns, calibrate_threshold, time_stages
+from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.training.config import ModelConfig
+
+OLD_STEPS = 50  # DDIM steps the old graphs ran (the README's paper-width row before issue 23)
+OLD_UP = "depth_to_space"  # the head's up-sampling export form before 2026-12-03
+OLD_PROVIDER = "cpu"  # onnxruntime only: --provider auto came with issue 23
+
+
+def old_config(cfg: ModelConfig) -> ModelConfig:
+    """``cfg`` as the old graphs had it: the dense head, T_m = OLD_STEPS."""
+    return dataclasses.replace(
+        cfg, head_kind="dense", diffusion=dataclasses.replace(cfg.diffusion, sample_steps=OLD_STEPS)
+    )
+
+
+def export_old(cfg: ModelConfig, folder: Path, seed: int) -> Path:
+    """The random MSDNet of ``cfg`` and ``seed`` exported into the new ``folder`` as the old graphs."""
+    from msdnet.training.models import build_model
+
+    old = old_config(cfg)
+    torch.manual_seed(seed)  # as random_pair: the same weights as the new model's
+    model = build_model("student", old).eval()
+    _export(model, "student", old, folder, f"random init, seed {seed}; graphs as before issue 23", OLD_UP)
+    return folder
+
+
+def old_comparison(
+    new: Pipeline,
+    points: Scan,
+    new_threshold: float,
+    cfg: ModelConfig,
+    scratch: Path,
+    threads: int,
+    target: int,
+    repeats: int,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Time ``new`` (already warm, its gate set) against the old graphs of the same random model
+    (module docstring) on ``points``; -> both runs' stage medians and ``new_over_old``."""
+    old = Pipeline.from_dir(export_old(cfg, scratch / "old-graphs", seed), OLD_PROVIDER, threads)
+    old.warmup()
+    old.gate = None  # the dense head
+    old_threshold = calibrate_threshold(old, points, target, seed)
+    runs = {"old": StageRuns({}), "new": StageRuns({})}
+    args = {"old": (old, old_threshold), "new": (new, new_threshold)}
+    for r in tqdm(range(repeats), desc="old graphs vs new", unit="pair", disable=None):
+        for key in ("old", "new") if r % 2 == 0 else ("new", "old"):
+            pipe, thr = args[key]
+            one = time_stages(pipe, points, None, thr, 1, seed)
+            for k, v in one.seconds.items():
+                runs[key].seconds.setdefault(k, []).extend(v)
+            runs[key].decoded = one.decoded
+    out: dict[str, Any] = {"repeats": repeats}
+    for key, acc in runs.items():
+        pipe, thr = args[key]
+        out[key] = {
+            "stages_ms": {k: v["median"] for k, v in acc.summaries().items()},
+            "total_ms": acc.summaries()["total"]["median"],
+            "steps": pipe.artifact.diffusion.sample_steps,
+            "head": "dense" if pipe.gate is None else f"coarse-to-fine, gate {pipe.gate:.4g}",
+            "provider": pipe.provider,
+            "threshold": thr,
+            "decoded": acc.decoded,
+        }
+    out["old"] |= {"up_sampling": OLD_UP}
+    out["new_over_old"] = out["new"]["total_ms"] / out["old"]["total_ms"]
+    pairs = np.asarray(runs["new"].seconds["total"]) / np.asarray(runs["old"].seconds["total"])
+    out["new_over_old_per_pair"] = [float(x) for x in pairs]  # each repeat's ratio, same load
+    return out
