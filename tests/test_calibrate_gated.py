@@ -101,3 +101,24 @@ def test_command_writes_a_gated_checkpoint(tmp_path, vod_root) -> None:
     assert not (tmp_path / "x").exists()
     model2, _, _ = gated_student(ckpt)
     assert isinstance(model2.teacher.head, GatedReconHead)
+
+
+def test_finetune_moves_only_the_half_level_towards_the_dense_head() -> None:
+    """Fine-tuned on frames the fixed statistics do not fit, the gated head gets closer to the dense
+    head there; the trunk down to the 1/2 conv's input and the 1/4 branches keep their weights, and
+    every parameter keeps its requires_grad."""
+    from msdnet.training.finetune_gated import FinetuneConfig, finetune_level
+
+    dense, gated = _pair(3)
+    zs = list(torch.randn(3, 1, *bev_shape(gated.cfg)))
+    head = gated.teacher.head
+    with one_torch_thread():
+        calibrate(gated, zs[:1])  # statistics of one frame: off on the other two
+        before = {k: v.clone() for k, v in head.state_dict().items()}
+        flags = {k: p.requires_grad for k, p in head.named_parameters()}
+        report = finetune_level(gated.head, dense.head, zs, FinetuneConfig(iterations=15))
+    assert report["loss_after"] < report["loss_before"]
+    assert 0 <= report["flips_after"] <= 1
+    changed = {k for k, v in head.state_dict().items() if not torch.equal(v, before[k])}
+    assert changed and all(k.startswith(("post2.2.", "occ.1.", "off.1.", "up1.", "full.")) for k in changed)
+    assert {k: p.requires_grad for k, p in head.named_parameters()} == flags
