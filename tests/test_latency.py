@@ -236,3 +236,19 @@ def test_quick_run_times_the_old_graphs_of_the_same_model(quick):
     assert res["ratios"]["total_over_old_graphs"] == old["new_over_old"]
     md = (out / "results.md").read_text(encoding="utf-8")
     assert "Against the graphs before issue 23" in md and "total / the old graphs' total" in md
+
+
+def test_keep_all_check_leaves_out_only_points_at_the_threshold():
+    from types import SimpleNamespace
+
+    from msdnet.benchmarks.latency.head import apart_at_threshold
+
+    pts = np.arange(12, dtype=np.float32).reshape(4, 3)
+    dense = SimpleNamespace(points=pts, confidence=np.array([0.9, 0.5 + 1e-7, 0.7, 0.6], np.float32))
+    # the point at the threshold decoded by the dense head only; the rest the same within 0.1 mm
+    sparse = SimpleNamespace(points=pts[[0, 2, 3]] + 5e-5, confidence=np.array([0.9, 0.7, 0.6], np.float32))
+    assert apart_at_threshold(sparse, dense, 0.5) == 1
+    far = SimpleNamespace(points=pts[[0, 2]], confidence=np.array([0.9, 0.7], np.float32))
+    assert apart_at_threshold(far, dense, 0.5) is None  # a point well above the threshold is missing
+    moved = SimpleNamespace(points=pts[[0, 2, 3]] + 1e-3, confidence=sparse.confidence)
+    assert apart_at_threshold(moved, dense, 0.5) is None

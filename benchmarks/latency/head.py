@@ -20,6 +20,26 @@ from msdnet.runtime.engine.pipeline import Pipeline
 
 RANDOM_VOXEL_SHARE = 0.05  # random weights: share of the half-scale voxels the gate keeps
 CLOSE_M = 1e-4  # m: keep-every-point points "equal within rounding" (gated head: other sum order)
+AT_THRESHOLD = 1e-5  # occupancy this close to the threshold may fall on either side in another sum order
+
+
+def apart_at_threshold(a: Any, b: Any, threshold: float) -> int | None:
+    """Two decodings ``a``, ``b`` (``points`` (M, 3), ``confidence`` (M,)) of the same input: how many
+    points only one of them decodes, if each of those lies within ``AT_THRESHOLD`` of ``threshold``
+    (rounding may put it on either side) and every other point has a twin within ``CLOSE_M``; else
+    None."""
+    from scipy.spatial import cKDTree
+
+    pa, pb = np.asarray(a.points, np.float64), np.asarray(b.points, np.float64)
+    alone = 0
+    for p, q, conf in ((pa, pb, a.confidence), (pb, pa, b.confidence)):
+        if not len(p):
+            continue
+        lone = np.ones(len(p), bool) if not len(q) else cKDTree(q).query(p)[0] > CLOSE_M  # (M,)
+        if np.any(np.abs(np.asarray(conf, np.float64)[lone] - threshold) > AT_THRESHOLD):
+            return None
+        alone += int(lone.sum())
+    return alone
 
 
 def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: int = 0) -> str:
@@ -85,4 +105,6 @@ def head_comparison(
             keep_all.points.shape == dense.points.shape
             and np.allclose(keep_all.points, dense.points, rtol=0, atol=CLOSE_M)
         ),
+        # else: equal but for the points at the threshold (random weights put it on a point's occupancy)
+        "keep_all_apart_at_threshold": apart_at_threshold(keep_all, dense, threshold),
     }

@@ -189,4 +189,9 @@ def _keep_all_words(h: dict[str, Any]) -> str:
         return "equal"
     if h.get("keep_all_close"):
         return "equal within 0.1 mm (the same sums in another order) to"
+    if h.get("keep_all_apart_at_threshold") is not None:
+        return (
+            f"equal within 0.1 mm, but for {h['keep_all_apart_at_threshold']} points one head decodes "
+            "alone, each within 1e-5 of the threshold (rounding puts it on either side), to"
+        )
     return "DIFFER FROM"
