@@ -31,7 +31,7 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     "--provider",
     default="cpu",
     show_default=True,
-    help="cpu, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+    help="cpu, cpu-shared, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
 )
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
 @click.option("--repeats", type=click.IntRange(min=1), help="Timed MSDNet frames [30; quick 3].")

@@ -202,7 +202,7 @@ def run_steps(
     "--provider",
     default="cpu",
     show_default=True,
-    help="cpu, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+    help="cpu, cpu-shared, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Diffusion noise seed.")
 @one_line_errors

@@ -48,6 +48,7 @@ from msdnet.benchmarks.latency.timing import (
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import PointCloud
+from msdnet.runtime.engine.session import SHARED
 from msdnet.runtime.errors import MsdnetError
 
 TABLE3_STEPS = (3, 10, 50, 100)  # MSDNet Table III
@@ -175,6 +176,12 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     """Run every measurement of the module docstring, write the outputs; -> results.json's dict."""
     if (cfg.data is None) != (cfg.dataset is None):
         raise MsdnetError("--data", "--data and --dataset go together")
+    if cfg.provider.strip().lower() == SHARED and (cfg.peers or cfg.against_old):
+        raise MsdnetError(
+            "--provider",
+            f"{SHARED}'s pool spins between graphs and would slow the engines timed beside it: "
+            "use --no-peers, without --against-old",
+        )
     load_start = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="msdnet-latency-") as tmp:
         scratch = Path(tmp)

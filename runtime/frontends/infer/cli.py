@@ -88,7 +88,8 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
     "--provider",
     default="cpu",
     show_default=True,
-    help="cpu (byte-reproducible), auto (per graph the faster of onnxruntime and OpenVINO), auto-bf16 "
+    help="cpu (byte-reproducible), cpu-shared (onnxruntime with one thread pool for every graph), "
+    "auto (per graph the faster of onnxruntime and OpenVINO), auto-bf16 "
     "(the same with OpenVINO in bfloat16: fastest on CPUs with bf16 units), openvino, openvino-bf16, "
     "cuda or tensorrt.",
 )

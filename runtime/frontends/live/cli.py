@@ -41,7 +41,7 @@ from msdnet.runtime.errors import MsdnetError, one_line_errors
     "--provider",
     default="cpu",
     show_default=True,
-    help="cpu, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+    help="cpu, cpu-shared, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
 )
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads.")
 @click.option(
