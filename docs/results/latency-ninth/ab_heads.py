@@ -35,10 +35,10 @@ def feeds(f: np.ndarray, gate: float | None) -> dict[str, np.ndarray]:
     return out
 
 
-def runners() -> dict[str, Callable[[np.ndarray], object]]:
+def runners(graphs: dict[str, tuple[str, float | None]]) -> dict[str, Callable[[np.ndarray], object]]:
     out: dict[str, Callable[[np.ndarray], object]] = {}
     core = ov.Core()
-    for name, (path, gate) in GRAPHS.items():
+    for name, (path, gate) in graphs.items():
         so = ort.SessionOptions()
         so.intra_op_num_threads, so.inter_op_num_threads = 2, 1
         sess = ort.InferenceSession(path, so, providers=["CPUExecutionProvider"])
@@ -51,21 +51,24 @@ def runners() -> dict[str, Callable[[np.ndarray], object]]:
     return out
 
 
-def main() -> None:
+def main(graphs: dict[str, tuple[str, float | None]] = GRAPHS, passes: int = 2, swap: bool = False) -> None:
+    """Time ``graphs`` on the frames, ``passes`` passes (``swap``: every other pass in reverse order)."""
     frames = np.load(FEATURES)["feats"][299:352]
-    run = runners()
+    run = runners(graphs)
     for f in frames[:3]:  # warm-up
         for r in run.values():
             r(f)
     times: dict[str, list[float]] = {k: [] for k in run}
-    for _ in range(2):
+    for p in range(passes):
+        order = list(run.items())[::-1] if swap and p % 2 else list(run.items())
         for f in frames:
-            for k, r in run.items():
+            for k, r in order:
                 t0 = time.perf_counter()
                 r(f)
                 times[k].append(time.perf_counter() - t0)
+    width = max(30, *(len(k) for k in times))
     for k, v in times.items():
-        print(f"{k:30s} median {np.median(v) * 1e3:6.2f} ms  p10 {np.percentile(v, 10) * 1e3:6.2f}")
+        print(f"{k:{width}s} median {np.median(v) * 1e3:6.2f} ms  p10 {np.percentile(v, 10) * 1e3:6.2f}")
 
 
 if __name__ == "__main__":

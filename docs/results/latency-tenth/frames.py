@@ -19,8 +19,8 @@ from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
 from msdnet.runtime.io.datasets import open_dataset  # noqa: E402
 
 
-def main(provider: str) -> None:
-    pipe = Pipeline.from_dir("models/astyx-lite", provider, 2)
+def stage_medians(pipe: Pipeline) -> str:
+    """Per-stage medians (ms) of ``pipe`` over the slice frames, one line."""
     ds = open_dataset("astyx", "../shared/data/astyx_hires2019", split="train")
     frames = [ds.load(i).radar for i in ds.frame_ids[299:352]]
     for f in frames[:3]:
@@ -30,9 +30,8 @@ def main(provider: str) -> None:
         for f in frames:
             for stage, s in pipe(f, seed=0).timings.items():
                 seconds.setdefault(stage, []).append(s)
-    cells = " ".join(f"{k} {np.median(v) * 1e3:.2f}" for k, v in seconds.items() if k != "prepare")
-    print(f"{provider:10s} ms: {cells}")
+    return " ".join(f"{k} {np.median(v) * 1e3:.2f}" for k, v in seconds.items() if k != "prepare")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    print(f"{sys.argv[1]:10s} ms: {stage_medians(Pipeline.from_dir('models/astyx-lite', sys.argv[1], 2))}")

@@ -14,17 +14,16 @@ warm-up frames), 2 threads, onnxruntime's threads as MODE asks:
 from __future__ import annotations
 
 import os
+import runpy
 import sys
 
 os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 
-import numpy as np  # noqa: E402
 import onnxruntime as ort  # noqa: E402
 import onnxruntime.capi._pybind_state as ort_c  # noqa: E402
 
 import msdnet.runtime.engine.session as session  # noqa: E402
 from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
-from msdnet.runtime.io.datasets import open_dataset  # noqa: E402
 
 PLAIN = session.session_options
 
@@ -46,17 +45,8 @@ def main(provider: str, mode: str) -> None:
         ort_c.set_global_thread_pool_sizes(2, 1)
     session.session_options = lambda threads=None: options(mode, threads)
     pipe = Pipeline.from_dir("models/astyx-lite", provider, 2)
-    ds = open_dataset("astyx", "../shared/data/astyx_hires2019", split="train")
-    frames = [ds.load(i).radar for i in ds.frame_ids[299:352]]
-    for f in frames[:3]:
-        pipe(f, seed=0)
-    seconds: dict[str, list[float]] = {}
-    for _ in range(2):
-        for f in frames:
-            for stage, s in pipe(f, seed=0).timings.items():
-                seconds.setdefault(stage, []).append(s)
-    cells = " ".join(f"{k} {np.median(v) * 1e3:.2f}" for k, v in seconds.items() if k != "prepare")
-    print(f"{provider} {mode:8s} ms: {cells}")
+    frames = runpy.run_path("docs/results/latency-tenth/frames.py")  # not as __main__
+    print(f"{provider} {mode:8s} ms: {frames['stage_medians'](pipe)}")
 
 
 if __name__ == "__main__":
