@@ -7,8 +7,8 @@ onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve
 voxelizer between graph calls, so spinning is off in every session's own pool
 (``session.intra_op.allow_spinning``). ``cpu-shared`` instead gives every graph of the process
 one onnxruntime thread pool (``set_global_thread_pool_sizes``), whose workers spin between the
-graphs of a frame: 6-11 % faster a frame on the 2-core test machine, where the per-session pools
-spinning were 2.4x slower (docs/results/latency-tenth). The pool is the process's: its thread count
+graphs of a frame: faster a frame in 7 of 8 rounds on the 2-core test machine (1-12 %), where
+per-session pools that spin were 2.4x slower (docs/results/latency-tenth). The pool is the process's: its thread count
 is fixed by the first ``cpu-shared`` session, and its spinning slows OpenVINO or torch running in
 the same process, so it is opt-in and stays off ``auto``.
 """
