@@ -6,8 +6,9 @@ it a little, frame by frame. This step retrains only the layers after the fixed 
 that the gated head reproduces, on the student's own loop features of its fitted frames, what the
 dense head it came from decodes there (distillation; the LiDAR targets are not read):
 
-    trained   the 1/2 3x3x3 conv, the fixed norm's affine, the 1/2 occupancy / offset branches,
-              ``up1`` and ``full`` (the full-scale children)
+    trained   the 1/2 3x3x3 conv, the fixed norm's affine, the 1/2 occupancy branch (the gate),
+              ``up1`` and ``full`` (the full-scale children); the 1/2 offsets, which the
+              runtime does not decode, are left as they are
     frozen    everything up to the conv's input (the 1/8 and 1/4 levels, the up-sampling and the
               exact per-frame norm before the conv): cached once per frame
     loss      per frame: soft BCE of the full-scale occupancy logits to the dense head's
@@ -97,7 +98,7 @@ def _loss(head: GatedReconHead, t: Target, cfg: FinetuneConfig) -> tuple[Tensor,
 
 
 def _trained(head: GatedReconHead) -> list[nn.Parameter]:
-    mods = [head.post2[2][0], head.fixed_norm(), head.occ[1], head.off[1], head.up1, head.full]
+    mods = [head.post2[2][0], head.fixed_norm(), head.occ[1], head.up1, head.full]
     return [p for m in mods for p in m.parameters()]
 
 
