@@ -4,10 +4,11 @@ the same run, old graphs vs new").
 
 The old graphs: the dense reconstruction head (no coarse-to-fine graph), the head's 2x up-sampling
 as a 1x1x1 conv and an 8-D ``Transpose`` (``Up2x`` "depth_to_space", the export form before
-2026-12-03), T_m = 50 DDIM steps, ``--provider cpu``. The weights are the new model's: the same
-preset, seed and initialisation order (only ``head_kind`` and the step count differ, neither of
-which changes a weight), so the two differ only in what the engine runs. Its threshold leaves the
-same number of points as the new model's (``calibrate_threshold`` to the run's target).
+2026-12-03), T_m = 50 DDIM steps, ``--provider cpu``. Against a dense or gated head, the weights
+are the new model's: the same preset, seed and initialisation order (the gated head has the dense
+head's layers; the step count changes no weight), so the two differ only in what the engine runs
+(the ``sparse`` head kind has layers of its own, so there the head's weights differ). Its threshold
+leaves the same number of points as the new model's (``calibrate_threshold`` to the run's target).
 
 Both pipelines run the run's input in turn, the order swapped every repeat, so both see the same
 load; the result holds each one's stage medians and ``new_over_old`` = new total / old total.
