@@ -8,9 +8,9 @@ voxelizer between graph calls, so spinning is off in every session's own pool
 (``session.intra_op.allow_spinning``). ``cpu-shared`` instead gives every graph of the process
 one onnxruntime thread pool (``set_global_thread_pool_sizes``), whose workers spin between the
 graphs of a frame: faster a frame in 7 of 8 rounds on the 2-core test machine (1-12 %), where
-per-session pools that spin were 2.4x slower (docs/results/latency-tenth). The pool is the process's: its thread count
-is fixed by the first ``cpu-shared`` session, and its spinning slows OpenVINO or torch running in
-the same process, so it is opt-in and stays off ``auto``.
+per-session pools that spin were 2.4x slower (docs/results/latency-tenth). The pool is the
+process's: its thread count is fixed by the first ``cpu-shared`` session, and its spinning slows
+OpenVINO or torch running in the same process, so it is opt-in and stays off ``auto``.
 """
 
 from __future__ import annotations
