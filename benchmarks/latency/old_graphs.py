@@ -74,16 +74,14 @@ def old_comparison(
     for r in tqdm(range(repeats), desc="old graphs vs new", unit="pair", disable=None):
         for key in ("old", "new") if r % 2 == 0 else ("new", "old"):
             pipe, thr = args[key]
-            one = time_stages(pipe, points, None, thr, 1, seed)
-            for k, v in one.seconds.items():
-                runs[key].seconds.setdefault(k, []).extend(v)
-            runs[key].decoded = one.decoded
+            runs[key].add(time_stages(pipe, points, None, thr, 1, seed))
     out: dict[str, Any] = {"repeats": repeats}
     for key, acc in runs.items():
         pipe, thr = args[key]
+        stages = {k: v["median"] for k, v in acc.summaries().items()}
         out[key] = {
-            "stages_ms": {k: v["median"] for k, v in acc.summaries().items()},
-            "total_ms": acc.summaries()["total"]["median"],
+            "stages_ms": stages,
+            "total_ms": stages["total"],
             "steps": pipe.artifact.diffusion.sample_steps,
             "head": "dense" if pipe.gate is None else f"coarse-to-fine, gate {pipe.gate:.4g}",
             "provider": pipe.provider,

@@ -29,10 +29,7 @@ def msdnet_timings(
     bare.run(n_steps)
     runs, blocks = StageRuns({}), []
     for _ in tqdm(range(repeats), desc="MSDNet stages", unit="frame", disable=None):
-        one = time_stages(pipe, points, None, thr, 1, seed)
-        for k, v in one.seconds.items():
-            runs.seconds.setdefault(k, []).extend(v)
-        runs.decoded, runs.stats = one.decoded, one.stats
+        runs.add(time_stages(pipe, points, None, thr, 1, seed))
         blocks.append(bare.run(n_steps))
     loops = np.asarray(runs.seconds["ddim_loop"])  # (repeats,) s, pairs with ``blocks``
     loop, bare_loop = float(np.median(loops)), float(np.median(blocks))
@@ -81,10 +78,7 @@ def sweep(
     bar = tqdm(total=repeats * len(values), desc=f"{key} sweep", disable=None)
     for _ in range(repeats):
         for (points, steps), acc in zip(cases, runs, strict=True):
-            one = time_stages(pipe, points, steps, thr, 1, seed)
-            for k, v in one.seconds.items():
-                acc.seconds.setdefault(k, []).extend(v)
-            acc.decoded, acc.stats = one.decoded, one.stats
+            acc.add(time_stages(pipe, points, steps, thr, 1, seed))
             bar.update()
     bar.close()
     rows = []

@@ -112,6 +112,12 @@ class StageRuns:
     def summaries(self) -> dict[str, dict[str, float]]:
         return {k: summary(v) for k, v in self.seconds.items()}
 
+    def add(self, later: StageRuns) -> None:
+        """Append ``later``'s calls; its decoded points and stats become the last call's."""
+        for k, v in later.seconds.items():
+            self.seconds.setdefault(k, []).extend(v)
+        self.decoded, self.stats = later.decoded, later.stats
+
 
 def time_stages(
     pipe: Pipeline, points: Scan, steps: int | None, threshold: float, repeats: int, seed: int = 0
