@@ -55,16 +55,18 @@ class Target:
     half_occ: Tensor  # (1, 1, D2, H2, W2) dense 1/2 occupancy
 
 
-def targets(gated: LatentHead, dense: LatentHead, features: list[Tensor]) -> list[Target]:
-    """Per frame of ``features`` (normalised F^D (1, C, H8, W8)) its :class:`Target`."""
-    g, d = gated._head, dense._head
-    assert isinstance(g, GatedReconHead) and isinstance(d, ReconHead)
+def targets(dense: LatentHead, features: list[Tensor]) -> list[Target]:
+    """Per frame of ``features`` (normalised F^D (1, C, H8, W8)) its :class:`Target`. The conv's
+    input is the dense head's: the gated head built from it (``calibrate_gated``) has the same
+    layers and weights up to there, with the same exact per-frame norm."""
+    d = dense._head
+    assert isinstance(d, ReconHead)
     out = []
     with torch.no_grad():
         for z in features:
-            x4 = g._quarter(gated._f(z))  # (1, c4, D4, H4, W4), the dense head's too
-            conv_in = g.post2[:2](g._crop(g.up2(x4), 1))  # GroupNorm (exact), ReLU
-            x2 = d._trunk(dense._f(z))[1]  # (1, c2, D2, H2, W2)
+            x4 = d._quarter(dense._f(z))  # (1, c4, D4, H4, W4)
+            conv_in = d.post2[:2](d._crop(d.up2(x4), 1))  # GroupNorm, ReLU: (1, c2, D2, H2, W2)
+            x2 = d.post2[2:](conv_in)  # conv, GroupNorm, ReLU
             occ, off = d._packed_children(x2)
             out.append(Target(conv_in, occ, off, torch.sigmoid(d.occ[1](x2))))
     return out
@@ -109,7 +111,7 @@ def finetune_level(
     disagreement over the frames before and after."""
     head = gated._head
     assert isinstance(head, GatedReconHead)
-    data = targets(gated, dense, features)
+    data = targets(dense, features)
 
     def score() -> tuple[float, float]:
         with torch.no_grad():
