@@ -24,6 +24,7 @@ Each frame's noise eps comes from its own seeded generator, so the command is re
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
 
 import click
@@ -75,13 +76,9 @@ def loop_features(
     return out
 
 
-def calibrate(model: StudentModel, features: list[Tensor]) -> dict[str, list[float]]:
-    """Fold statistics into the gated head's fixed norm from ``features`` (once: it must still hold
-    the GroupNorm's affine); -> its pooled mean and var per group."""
-    head = model.teacher.head
-    if not isinstance(head, GatedReconHead):
-        raise TypeError("calibrate needs a student with the gated head")
-    norm = head.fixed_norm()
+def pooled_statistics(norm: FixedGroupNorm, run: Callable[[], object]) -> tuple[Tensor, Tensor]:
+    """The per-group mean and var (G,) of ``norm``'s input over everything ``run()`` passes
+    through it, pooled as one GroupNorm over all of it would take them."""
     sums = torch.zeros(norm.num_groups, 3, dtype=torch.float64)  # count, sum, sum of squares
 
     def pre(mod: FixedGroupNorm, inp: tuple[Tensor, ...]) -> None:
@@ -93,13 +90,22 @@ def calibrate(model: StudentModel, features: list[Tensor]) -> dict[str, list[flo
     hook = norm.register_forward_pre_hook(pre)
     try:
         with torch.no_grad():
-            for z in features:
-                model.head.packed(z)
+            run()
     finally:
         hook.remove()
     mean = sums[:, 1] / sums[:, 0]
     var = (sums[:, 2] / sums[:, 0] - mean.pow(2)).clamp_min(0)
-    norm.fold(mean.float(), var.float())
+    return mean.float(), var.float()
+
+
+def calibrate(model: StudentModel, features: list[Tensor]) -> dict[str, list[float]]:
+    """Fold statistics into the gated head's fixed norm from ``features`` (once: it must still hold
+    the GroupNorm's affine); -> its pooled mean and var per group."""
+    head = model.teacher.head
+    if not isinstance(head, GatedReconHead):
+        raise TypeError("calibrate needs a student with the gated head")
+    mean, var = pooled_statistics(head.fixed_norm(), lambda: [model.head.packed(z) for z in features])
+    head.fixed_norm().fold(mean, var)
     return {"mean": mean.tolist(), "var": var.tolist()}
 
 

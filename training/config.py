@@ -72,7 +72,8 @@ class ModelConfig:
     # head_sparse.py). Sparse cost 10 % CD on sim held-out frames (docs/training.md): not the default.
     # "gated": dense with fixed-statistics norms at 1/2, whose coarse-to-fine graph computes 1/2
     # only under the 1/4 voxels above the gate (head_gated.py; from a dense student by
-    # training/calibrate_gated.py)
+    # training/calibrate_gated.py); "gated8": every norm below 1/8 fixed, the 1/4 level computed
+    # only under the 1/8 voxels above the gate (head_gated8.py; training/retrain_gated8.py)
     head_kind: str = "dense"
     # sparse head only: widths at 1/4 and 1/2 (1/8 and the full scale keep head_channels[0], [2]);
     # wider than the dense head's, since below 1/4 a voxel sees only its parent (head_sparse.py)

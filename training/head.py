@@ -178,12 +178,15 @@ class ReconHead(HeadOutputs):
         self.post2 = nn.Sequential(group_norm(c2), nn.ReLU(), conv3d_norm_relu(c2))
         self._add_outputs(cfg, c4, c2, c1)
 
-    def _quarter(self, features: Tensor) -> Tensor:
-        """F^D (B, C, H8, W8) -> the 1/4 volume (B, c4, D4, H4, W4)."""
+    def _eighth(self, features: Tensor) -> Tensor:
+        """F^D (B, C, H8, W8) -> the 1/8 volume (B, c4, D8, H8, W8)."""
         b, _, h8, w8 = features.shape
         x = self.lift(features).reshape(b, self.c4, self.d8, h8, w8)  # channel-major re-read
-        x = self.conv8(torch.relu(x))  # (B, c4, D8, H8, W8)
-        return self.post4(self._crop(self.up4(x), 0))  # (B, c4, D4, H4, W4)
+        return self.conv8(torch.relu(x))
+
+    def _quarter(self, features: Tensor) -> Tensor:
+        """F^D (B, C, H8, W8) -> the 1/4 volume (B, c4, D4, H4, W4)."""
+        return self.post4(self._crop(self.up4(self._eighth(features)), 0))
 
     def _trunk(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """F^D (B, C, H8, W8) -> volumes at 1/4 (c4) and 1/2 (c2)."""

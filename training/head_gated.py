@@ -159,8 +159,6 @@ class GatedReconHead(ReconHead):
         outputs: occupancy (N, 8), offsets (N, 8, 3), voxels (N,) increasing half-scale index
         ``(z2 * H2 + y2) * W2 + x2``, gate_occupancy (N,) = min(own 1/2 occupancy, parent's 1/4
         occupancy) > gate. With gate 0 every voxel is kept and the outputs equal :meth:`packed`'s."""
-        d2, h2, w2 = self.shapes[1]
-        c2 = self.up2.cout
         x4 = self._quarter(features)  # (1, c4, D4, H4, W4)
         occ4 = torch.sigmoid(self.occ[0](x4))  # (1, 1, D4, H4, W4)
         passed = (occ4 > gate).float()
@@ -168,6 +166,17 @@ class GatedReconHead(ReconHead):
         par = torch.nonzero(grown.reshape(-1)).reshape(-1)  # (K,) 1/4 voxels whose children are read
         is_p = passed.reshape(-1).index_select(0, par) > 0  # (K,) in P: its children are computed
         u = self._half_input(x4, par)  # (K, child, c2)
+        return self._half_level(par, is_p, u, occ4.reshape(-1).index_select(0, par), gate)
+
+    def _half_level(
+        self, par: Tensor, is_p: Tensor, u: Tensor, par_occ: Tensor, gate: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The 1/2 level and the full scale from the K 1/4 voxels ``par`` (P+, increasing linear
+        index), ``is_p`` (K,) bool: in P (its children are computed), ``u`` (K, child, c2) their
+        children's conv input, ``par_occ`` (K,) the occupancy each passes the gate with (the
+        smallest of its own and its ancestors') -> :meth:`sparse`'s outputs."""
+        d2, h2, w2 = self.shapes[1]
+        c2 = self.up2.cout
         z, y, x, inside = self._children(par)  # (K, 8) each
         inside = inside.reshape(-1)  # (K * 8,) the crop to 1/2's grid
         padded = (((z + 1) * (h2 + 2) + y + 1) * (w2 + 2) + x + 1).reshape(-1)  # (K * 8,)
@@ -181,7 +190,7 @@ class GatedReconHead(ReconHead):
         gathered = table.index_select(0, nb).reshape(-1, 27, c2)  # (M, tap, c2)
         x2 = torch.relu(self.fixed_norm().on_rows(self._conv_rows(gathered)))  # (M, c2)
         occ2 = torch.sigmoid(rows(self.occ[1], x2)).reshape(-1)  # (M,)
-        parent = occ4.reshape(-1).index_select(0, par).unsqueeze(1).expand(-1, 8).reshape(-1)
+        parent = par_occ.unsqueeze(1).expand(-1, 8).reshape(-1)  # (K * 8,)
         gate_occ = torch.minimum(occ2, parent.index_select(0, child))
         keep = torch.nonzero(gate_occ > gate).reshape(-1)
         vox = ((z * h2 + y) * w2 + x).reshape(-1).index_select(0, child)  # (M,) half-scale index

@@ -163,13 +163,18 @@ class SparseReconHead(HeadOutputs):
 
 def build_head(cfg: ModelConfig) -> nn.Module:
     """The head ``cfg.head_kind`` names: "dense" (``head.ReconHead``), "gated"
-    (``head_gated.GatedReconHead``) or "sparse" (this module)."""
+    (``head_gated.GatedReconHead``), "gated8" (``head_gated8.Gated8ReconHead``) or "sparse"
+    (this module)."""
     if cfg.head_kind == "gated":
         from msdnet.training.head_gated import GatedReconHead
 
         return GatedReconHead(cfg)
+    if cfg.head_kind == "gated8":
+        from msdnet.training.head_gated8 import Gated8ReconHead
+
+        return Gated8ReconHead(cfg)
     if cfg.head_kind == "sparse":
         return SparseReconHead(cfg)
     if cfg.head_kind == "dense":
         return ReconHead(cfg)
-    raise ValueError(f"head_kind must be 'dense', 'gated' or 'sparse', got {cfg.head_kind!r}")
+    raise ValueError(f"head_kind must be 'dense', 'gated', 'gated8' or 'sparse', got {cfg.head_kind!r}")

@@ -62,7 +62,7 @@ class LatencyConfig:
     out: Path  # folder for results.json, results.md and the plots
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
-    head: str | None = None  # random models: "dense", "gated" or "sparse" recon head [the preset's: dense]
+    head: str | None = None  # random models: "dense", "gated", "gated8" or "sparse" recon head [dense]
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
     up_sampling: str | None = None  # random models: head export form (training.head.Up2x) [the exporter's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
@@ -275,7 +275,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     stages, r2_stages = runs.summaries(), r2.summaries()
     res: dict[str, Any] = {
         "preset": pair.cfg.preset,
-        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated" or "sparse"
+        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated", "gated8" or "sparse"
         "up_sampling": cfg.up_sampling,  # random models' head export form (None: given models / default)
         "provider": cfg.provider,
         "threads": cfg.threads,
