@@ -95,3 +95,19 @@ def test_command_writes_the_best_gated8_checkpoint(tmp_path, vod_root) -> None:
     again = CliRunner().invoke(main, [str(out), *args[1:], "--out", str(tmp_path / "x")])
     assert again.exit_code != 0 and "retrain from a dense head" in again.output
     assert not (tmp_path / "x").exists()
+
+    # --refit-gates: only the three gates move, and the slice gates' KL does not rise
+    res = CliRunner().invoke(main, [str(out), *args[1:], "--refit-gates", "2", "--out", str(tmp_path / "g")])
+    assert res.exit_code == 0, res.output
+    refit, cfg2, state2 = load_checkpoint(tmp_path / "g")
+    assert cfg2 == cfg and state2.init == str(ckpt) and "gates epoch 2" in res.output
+    before, after = (float(v) for v in res.output.split("slice gates KL ")[-1].split(";")[0].split(" -> "))
+    assert after <= before
+    old, new = model.state_dict(), refit.state_dict()
+    gates = [
+        k for k in old if k.startswith(("teacher.head.occ8.", "teacher.head.occ.0.", "teacher.head.occ.1."))
+    ]
+    assert len(gates) == 6 and (after == before or any(not torch.equal(old[k], new[k]) for k in gates))
+    assert all(torch.equal(old[k], new[k]) for k in old if k not in gates)
+    bad = CliRunner().invoke(main, [str(ckpt), *args[1:], "--refit-gates", "1", "--out", str(tmp_path / "y")])
+    assert bad.exit_code != 0 and "gated8 checkpoint" in bad.output and not (tmp_path / "y").exists()

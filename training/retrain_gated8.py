@@ -22,6 +22,12 @@ features of the fitted frames:
    is written to ``--out``. Validation is never read.
 
     python -m msdnet.training.retrain_gated8 CKPT --dataset astyx --data ROOT --steps 2 --out NEW
+
+4. **Refit the gates** (``--refit-gates N``, on a checkpoint step 3 wrote): the three gates are
+   probes of the trunk's detached features, so fitting them alone (Adam at ``--gates-lr``, the
+   epoch with the lowest slice gates KL kept) moves no dense output, only which voxels the
+   coarse-to-fine graph computes at a given recall. The new gates start from fresh weights, and the
+   trunk's learning rate leaves them far from fitted.
 """
 
 from __future__ import annotations
@@ -134,6 +140,45 @@ def _parts(p: np.ndarray) -> str:
     return f"occupancy KL {p[0]:.2e}, offsets {p[1]:.4f}, gates KL {p[2]:.2e}, decided otherwise {p[3]:.3%}"
 
 
+def refit_gates(
+    head: Gated8ReconHead,
+    fit: list[tuple[list[Tensor], Target]],
+    select: list[tuple[list[Tensor], Target]],
+    epochs: int,
+    lr: float,
+    seed: int = 0,
+) -> tuple[float, float]:
+    """Fit only the three gates (1x1x1 probes on the trunk's detached x8, x4, x2: no dense output
+    moves) to the gate targets, Adam one frame a step; keep the epoch with the lowest slice gates KL.
+    fit / select: per frame (the trunk's [x8, x4, x2], Target). -> slice gates KL (before, after)."""
+    probes = [head.occ8, head.occ[0], head.occ[1]]
+    params = [p for m in probes for p in m.parameters()]
+
+    def kl(levels: list[Tensor], t: Target) -> Tensor:
+        return sum(_kl(m(v)[0, 0], g.float()) for m, v, g in zip(probes, levels, t.gates, strict=True))
+
+    def on_slice() -> float:
+        with torch.no_grad():
+            return float(np.mean([float(kl(v, t)) for v, t in select]))
+
+    first = best = on_slice()
+    kept = [p.detach().clone() for p in params]
+    opt, order = torch.optim.Adam(params, lr=lr), np.random.default_rng(seed)
+    for epoch in range(1, epochs + 1):
+        for i in order.permutation(len(fit)):
+            opt.zero_grad()
+            kl(*fit[i]).backward()
+            opt.step()
+        now = on_slice()
+        click.echo(f"gates epoch {epoch}: slice gates KL {now:.3e}" + (" (best)" if now < best else ""))
+        if now < best:
+            best, kept = now, [p.detach().clone() for p in params]
+    with torch.no_grad():
+        for p, k in zip(params, kept, strict=True):
+            p.copy_(k)
+    return first, best
+
+
 def gated8_student(checkpoint: str | Path) -> tuple[StudentModel, StudentModel, object, object]:
     """(dense student, the same student with the gated8 head (occ8 newly initialised), its config,
     CheckpointState)."""
@@ -166,6 +211,14 @@ def gated8_student(checkpoint: str | Path) -> tuple[StudentModel, StudentModel, 
 @click.option("--max-frames", type=int, default=None, help="Smoke runs: the first N frames only.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Noise of the loop and frame order.")
 @click.option("--threads", type=int, default=None, help="torch threads.")
+@click.option(
+    "--refit-gates",
+    "gate_epochs",
+    type=int,
+    default=0,
+    help="CHECKPOINT is a gated8 run: fit only its gates for N epochs (no dense output moves).",
+)
+@click.option("--gates-lr", type=float, default=1e-2, show_default=True, help="Adam's rate of --refit-gates.")
 @one_line_errors
 def main(
     checkpoint: str,
@@ -182,12 +235,20 @@ def main(
     max_frames: int | None,
     seed: int,
     threads: int | None,
+    gate_epochs: int,
+    gates_lr: float,
 ) -> None:
     """Retrain CHECKPOINT's dense head as the gated8 head (module docstring); write it to --out."""
     if threads:
         torch.set_num_threads(threads)
     cfg_r = RetrainConfig(epochs=epochs, lr=lr, gate_weight=gate_weight, threshold=threshold, seed=seed)
-    dense, model, cfg, state = gated8_student(checkpoint)
+    if gate_epochs:
+        model, cfg, state = load_checkpoint(checkpoint)
+        if cfg.head_kind != "gated8" or not state.init:
+            raise MsdnetError(checkpoint, "--refit-gates takes a gated8 checkpoint written by this command")
+        dense = load_checkpoint(state.init)[0].eval()
+    else:
+        dense, model, cfg, state = gated8_student(checkpoint)
     fit, select = make_splits(dataset, root, cfg, val_fraction, max_frames=max_frames, holdout=holdout)
     if len(select) == 0:
         raise MsdnetError(root, "no selection slice: --holdout must leave frames out")
@@ -198,6 +259,23 @@ def main(
     t_fit, t_sel = dense_targets(dhead, z_fit, f), dense_targets(dhead, z_sel, f)
     x_fit, x_sel = [f(z).detach() for z in z_fit], [f(z).detach() for z in z_sel]
 
+    if gate_epochs:
+        for p in head.parameters():
+            p.requires_grad_(True)
+        with torch.no_grad():
+            lv_fit, lv_sel = [list(head.levels(x)) for x in x_fit], [list(head.levels(x)) for x in x_sel]
+        before, after = refit_gates(
+            head,
+            list(zip(lv_fit, t_fit, strict=True)),
+            list(zip(lv_sel, t_sel, strict=True)),
+            gate_epochs,
+            gates_lr,
+        )
+        save_checkpoint(out, model, cfg, state)
+        click.echo(
+            f"{out}: gates refit, slice gates KL {before:.3e} -> {after:.3e}; other weights: {checkpoint}"
+        )
+        return
     click.echo(f"dense head as gated8, statistics 0 / 1: slice {_parts(score(head, x_sel, t_sel, cfg_r)[1])}")
     for i, norm in enumerate(head.fixed_norms()):
         mean, var = pooled_statistics(norm, lambda: [head.packed(x) for x in x_fit])
