@@ -124,7 +124,7 @@ def test_gated8_head_norms_nothing_over_a_volume_below_the_eighth() -> None:
 
 @pytest.mark.parametrize("grid", [GRID_PRESETS["tiny"], ODD], ids=["tiny", "odd"])
 def test_gated8_sparse_skips_the_quarter_level_where_the_eighth_is_empty(grid: GridConfig) -> None:
-    """With a gate, 1/4 voxels are computed only under the 1/8 voxels grown by one, and a kept 1/2
+    """With a gate, 1/4 voxels are computed only near the children of 1/8 voxels that pass, a kept 1/2
     voxel's 1/8 grandparent passes the gate; where it computes, the values are the dense ones
     (on an odd grid too, where both up-samplings crop)."""
     torch.manual_seed(5)

@@ -15,13 +15,13 @@ fixed instead of one, and a 1/8 occupancy branch (a 1x1x1 conv, the 1/8 gate):
 So every layer below 1/8 is a function of a voxel's 3x3x3 neighbourhood, and :meth:`sparse` grows
 the occupied set coarse to fine, giving exactly the dense values where it computes:
 
-    1/8        dense (lite: 1,200 voxels) -> x8, occupancy occ8; P8 = occ8 > gate, P8+ = P8 grown
-               by one voxel (3x3x3)
+    1/8        dense (lite: 1,200 voxels) -> x8, occupancy occ8; P8 = occ8 > gate
     1/4 input  the up-sampled 1/8 volume, GroupNorm, ReLU: dense (lite: 8,000 rows of a 1x1x1
                map; the 3x3x3 conv after it is what costs)
-    1/4 conv   per 1/4 child of P8+: a gather of 27 neighbour rows + one matmul, fixed norm, ReLU
-               -> x4, occ4; P4 = children of P8 with min(occ4, occ8) > gate, P4+ = P4 grown by
-               one (every voxel of P4+ is a child of P8+, so its x4 was computed)
+    1/4 conv   per 1/4 voxel of C = the children of P8 grown by one 1/4 voxel (3x3x3): a gather
+               of 27 neighbour rows + one matmul, fixed norm, ReLU -> x4, occ4; P4 = children of
+               P8 with min(occ4, occ8) > gate, P4+ = P4 grown by one (inside C, so its x4 was
+               computed)
     1/2, full  as ``GatedReconHead``: the children of P4+ up-sampled (fixed norm, ReLU), the 1/2
                conv per child of P4, the full scale under the 1/2 voxels whose min(occ2, occ4,
                occ8) passes the gate
@@ -70,16 +70,6 @@ class Gated8ReconHead(GatedReconHead):
         x4 = self.post4(self._crop(self.up4(x8), 0))
         return x8, x4, self.post2(self._crop(self.up2(x4), 1))
 
-    def _quarter_children(self, parents: Tensor, h8: int, w8: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """parents (K,) linear 1/8 indices -> their children's 1/4 coordinates z, y, x (K, 8) and
-        (K, 8) bool: inside the 1/4 grid (lite crops D 6 -> 5)."""
-        d4, h4, w4 = self.shapes[0]
-        z = torch.div(parents, h8 * w8, rounding_mode="floor").unsqueeze(1) * 2 + self.child_dz
-        y = torch.remainder(torch.div(parents, w8, rounding_mode="floor"), h8)
-        y = y.unsqueeze(1) * 2 + self.child_dy
-        x = torch.remainder(parents, w8).unsqueeze(1) * 2 + self.child_dx
-        return z, y, x, (z < d4) & (y < h4) & (x < w4)
-
     def sparse(self, features: Tensor, gate: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Coarse-to-fine inference, batch 1 (module docstring), with ``ReconHead.sparse``'s
         outputs; gate_occupancy (N,) = min(occ2, occ4, occ8) of each kept 1/2 voxel."""
@@ -88,13 +78,15 @@ class Gated8ReconHead(GatedReconHead):
         x8 = self._eighth(features)  # (1, c4, D8, H8, W8)
         h8, w8 = x8.shape[3], x8.shape[4]
         occ8 = torch.sigmoid(self.occ8(x8)).reshape(-1)  # (V8,)
-        passed8 = (occ8 > gate).float().reshape(x8[:, :1].shape)  # (1, 1, D8, H8, W8)
-        grown8 = nn.functional.max_pool3d(passed8, 3, stride=1, padding=1)  # P8+
-        q8 = torch.nonzero(grown8.reshape(-1)).reshape(-1)  # (K8,)
-        z, y, x, inside = self._quarter_children(q8, h8, w8)  # (K8, 8) each
-        sel = torch.nonzero(inside.reshape(-1)).reshape(-1)  # (M4,) children inside the grid
-        z, y, x = (a.reshape(-1).index_select(0, sel) for a in (z, y, x))  # (M4,) each
-        q = (z * h4 + y) * w4 + x  # (M4,) the 1/4 voxels computed, increasing
+        d8 = x8.shape[2]
+        passed8 = (occ8 > gate).float().reshape(d8, 1, h8, 1, w8, 1)  # P8
+        under = passed8.expand(d8, 2, h8, 2, w8, 2).reshape(1, 1, 2 * d8, 2 * h8, 2 * w8)
+        under = under[:, :, :d4, :h4, :w4]  # (1, 1, D4, H4, W4) the children of P8
+        grown = nn.functional.max_pool3d(under, 3, stride=1, padding=1)  # grown by one 1/4 voxel
+        q = torch.nonzero(grown.reshape(-1)).reshape(-1)  # (M4,) the 1/4 voxels computed, increasing
+        z = torch.div(q, h4 * w4, rounding_mode="floor")
+        y = torch.remainder(torch.div(q, w4, rounding_mode="floor"), h4)
+        x = torch.remainder(q, w4)  # (M4,) each
         u4 = self.post4[:2](self._crop(self.up4(x8), 0))  # (1, c4, D4, H4, W4) GroupNorm, ReLU
         table = nn.functional.pad(u4, (1, 1, 1, 1, 1, 1)).reshape(c4, -1).t()  # (padded V4, c4)
         padded = ((z + 1) * (h4 + 2) + y + 1) * (w4 + 2) + x + 1  # (M4,)
