@@ -14,7 +14,8 @@ cores from each other, and its onnxruntime medians of the coarse-to-fine graphs 
 runtime's (the same graph on the same frames: 17-19 ms there, 10 ms in ``Pipeline``).
 
 Run from the repository root: ``python docs/results/latency-eleventh/ab_heads.py SHIPPED_DIR
-GATED8_DIR...`` (the dense head is SHIPPED_DIR's).
+GATED8_DIR...`` (the dense head is SHIPPED_DIR's); ``FEATURES=PATH.npz`` times other features
+(``feats.py`` writes them for any model's slice).
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ import numpy as np  # noqa: E402
 
 from msdnet.runtime.engine.session import create_session  # noqa: E402
 
-FEATURES = "runs/v15/astyx-select-feats.npz"  # (53, 64, 20, 20), feats.py
+FEATURES = os.environ.get("FEATURES", "runs/v15/astyx-select-feats.npz")  # (53, 64, 20, 20), feats.py
 ENGINES = {"onnxruntime": "cpu", "openvino": "openvino"}  # name: runtime provider
 
 

@@ -1,13 +1,23 @@
-"""Loop features of the 53 Astyx selection-slice frames (000299-000351), the input the head graphs
-are timed on (eleventh cycle). The shipped ``models/astyx-lite`` runs each radar scan (seed 0, its
-2 steps); the final loop buffer is the head's ``features``. Encoder, RGFD, adapter and loop are the
-same weights in every head variant timed, so one dump serves all. Run from the repository root;
-writes ``runs/v15/astyx-select-feats.npz`` (feats (53, C, H8, W8) float32).
+"""Loop features of a model's selection-slice frames, the input the head graphs are timed on
+(eleventh cycle). The shipped model runs each radar scan of the slice its checkpoint recorded
+(seed 0, its default steps); the final loop buffer is the head's ``features``. Encoder, RGFD,
+adapter and loop are the same weights in every head variant timed, so one dump serves all.
+
+Run from the repository root (writes ``feats`` (frames, C, H8, W8) float32 to OUT.npz):
+
+    python docs/results/latency-eleventh/feats.py models/astyx-lite CKPT astyx \
+        ../shared/data/astyx_hires2019 runs/v15/astyx-select-feats.npz   # 53 frames
+    python docs/results/latency-eleventh/feats.py models/sim-lite CKPT sim data/sim \
+        runs/v15/sim-select-feats.npz                                     # 24 frames
+
+CKPT: the model's training checkpoint (or one ``training.recover`` read back from its graphs with
+``--holdout``): it fixes the slice.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
@@ -15,19 +25,30 @@ os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 import numpy as np  # noqa: E402
 
 from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
-from msdnet.runtime.io.files import read_cloud  # noqa: E402
+from msdnet.training.checkpoint import load_checkpoint  # noqa: E402
+from msdnet.training.data import make_splits  # noqa: E402
 
-RADAR = Path("../shared/data/astyx_hires2019/radar_6455")
-OUT = Path("runs/v15/astyx-select-feats.npz")
+
+def slice_features(model: str, checkpoint: str, dataset: str, root: str) -> np.ndarray:
+    """(frames, C, H8, W8) loop features of the checkpoint's selection slice through ``model``."""
+    _, cfg, state = load_checkpoint(checkpoint)
+    holdout = float(state.dataset.get("holdout", 0.0) or 0.0)
+    _, select = make_splits(
+        dataset, root, cfg, float(state.dataset.get("val_fraction", 0.2)), holdout=holdout
+    )
+    pipe = Pipeline.from_dir(model, threads=2)
+    pipe.gate = None  # the dense head: the features do not depend on it
+    final = pipe.coefficients().shape[0] % 2  # the loop's final ping-pong buffer
+    feats = []
+    for i in range(len(select)):
+        pipe(np.ascontiguousarray(select[i][0], np.float32))  # (N, C) in the model's columns
+        feats.append(pipe._x[final].numpy()[0].copy())  # (C, H8, W8)
+    return np.stack(feats)
+
 
 if __name__ == "__main__":
-    pipe = Pipeline.from_dir("models/astyx-lite", threads=2)
-    pipe.gate = None  # the dense head: the features do not depend on it
-    feats = []
-    for i in range(299, 352):
-        pipe(read_cloud(RADAR / f"{i:06d}.txt"))
-        final = pipe.coefficients().shape[0] % 2  # the loop's final ping-pong buffer
-        feats.append(pipe._x[final].numpy()[0].copy())  # (C, H8, W8)
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(OUT, feats=np.stack(feats))
-    print(f"{OUT}: {np.stack(feats).shape}")
+    model, checkpoint, dataset, root, out = sys.argv[1:6]
+    feats = slice_features(model, checkpoint, dataset, root)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    np.savez(out, feats=feats)
+    print(f"{out}: {feats.shape}")
