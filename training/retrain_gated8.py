@@ -214,7 +214,7 @@ def gated8_student(checkpoint: str | Path) -> tuple[StudentModel, StudentModel, 
 @click.option(
     "--refit-gates",
     "gate_epochs",
-    type=int,
+    type=click.IntRange(min=0),
     default=0,
     help="CHECKPOINT is a gated8 run: fit only its gates for N epochs (no dense output moves).",
 )
