@@ -76,9 +76,8 @@ class Gated8ReconHead(GatedReconHead):
         d4, h4, w4 = self.shapes[0]
         c4, c2 = self.c4, self.up2.cout
         x8 = self._eighth(features)  # (1, c4, D8, H8, W8)
-        h8, w8 = x8.shape[3], x8.shape[4]
+        d8, h8, w8 = x8.shape[2:]
         occ8 = torch.sigmoid(self.occ8(x8)).reshape(-1)  # (V8,)
-        d8 = x8.shape[2]
         passed8 = (occ8 > gate).float().reshape(d8, 1, h8, 1, w8, 1)  # P8
         under = passed8.expand(d8, 2, h8, 2, w8, 2).reshape(1, 1, 2 * d8, 2 * h8, 2 * w8)
         under = under[:, :, :d4, :h4, :w4]  # (1, 1, D4, H4, W4) the children of P8

@@ -153,6 +153,8 @@ def refit_gates(
     fit / select: per frame (the trunk's [x8, x4, x2], Target). -> slice gates KL (before, after)."""
     probes = [head.occ8, head.occ[0], head.occ[1]]
     params = [p for m in probes for p in m.parameters()]
+    for p in params:
+        p.requires_grad_(True)  # the student holds the head frozen
 
     def kl(levels: list[Tensor], t: Target) -> Tensor:
         return sum(_kl(m(v)[0, 0], g.float()) for m, v, g in zip(probes, levels, t.gates, strict=True))
@@ -260,8 +262,6 @@ def main(
     x_fit, x_sel = [f(z).detach() for z in z_fit], [f(z).detach() for z in z_sel]
 
     if gate_epochs:
-        for p in head.parameters():
-            p.requires_grad_(True)
         with torch.no_grad():
             lv_fit, lv_sel = [list(head.levels(x)) for x in x_fit], [list(head.levels(x)) for x in x_sel]
         before, after = refit_gates(
