@@ -205,6 +205,7 @@ def test_quick_run_times_the_sparse_head_and_the_peers(quick):
     assert all(_finite(p["stages"][s]["openvino"]["median"]) for s in ("encoder", "ddim_loop", "recon_head"))
     assert p["totals"]["openvino"]["substituted"] == ["rgfd_adapter"]
     assert _finite(res["ratios"]["engine_over_best_peer"])
+    assert p["input"] == "a stream: 2 distinct frames timed, each engine seeing each once"
     md = (out / "results.md").read_text(encoding="utf-8")
     assert "Peer engines per stage" in md and "Coarse-to-fine head vs the dense head" in md
 

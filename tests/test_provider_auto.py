@@ -73,7 +73,8 @@ def test_measured_once_then_cached(folder, cache, monkeypatch):
     for f in ON_OV:
         p = picks[f]
         assert set(p.ms) == {"onnxruntime", "openvino"} and min(p.ms.values()) > 0 and not p.cached
-        faster = p.ms["openvino"] <= (1 - provider_auto.MARGIN) * p.ms["onnxruntime"]
+        assert p.ratio is not None and p.ratio > 0  # paired by scan, so not the ratio of the medians
+        faster = p.ratio <= 1 - provider_auto.MARGIN
         assert p.engine == ("openvino" if faster else "onnxruntime"), p.line()
         assert _engines(pipe)[f] == ("OpenVINO" if faster else "CPUExecutionProvider")
     doc = json.loads(cache.read_text())
@@ -92,6 +93,49 @@ def test_measured_once_then_cached(folder, cache, monkeypatch):
     assert all(p.cached for p in again.auto.picks.values()) and again.auto.cache_note == "read"
     assert _engines(again) == _engines(pipe)
     assert "DeformConv" in again.auto.picks[onnx_spec.RGFD_ADAPTER.file].line()
+
+
+def test_engines_are_timed_on_a_stream_of_scans(folder, cache, monkeypatch):
+    """Each timed call gets a scan neither engine saw before (a sensor's frames differ, and
+    OpenVINO prepares its kernels per input shape); the pipeline's own sessions have seen none."""
+    timed, own, runs = [], set(), []
+    real_times, real_inputs = provider_auto.time_engines, provider_auto.stream_inputs
+
+    def spy_times(sessions, feeds, refs):
+        timed.append(feeds)
+        return real_times(sessions, feeds, refs)
+
+    def spy_inputs(pipe, threads):
+        own.update(id(s) for s in pipe.sessions.values())  # the pipeline's onnxruntime sessions
+        return real_inputs(pipe, threads)
+
+    def counting(name):
+        real = getattr(ort.InferenceSession, name)
+
+        def run(self, *a, **k):
+            runs.append(id(self))
+            return real(self, *a, **k)
+
+        return run
+
+    monkeypatch.setattr(provider_auto, "time_engines", spy_times)
+    monkeypatch.setattr(provider_auto, "stream_inputs", spy_inputs)
+    for name in ("run", "run_with_iobinding"):
+        monkeypatch.setattr(ort.InferenceSession, name, counting(name))
+    pipe = Pipeline.from_dir(folder, "auto", threads=1)
+    on_ov = [f for f in pipe.sessions if f != onnx_spec.RGFD_ADAPTER.file]
+    assert len(timed) == len(on_ov)
+    for feeds in timed:
+        assert len(feeds) == provider_auto.STREAM_SCANS
+        first = [next(iter(f.values())) for f in feeds]  # each scan's first input
+        assert len({a.tobytes() for a in first}) == len(feeds)
+    enc = next(f for f in timed if onnx_spec.ENCODER.inputs[0] in f[0])
+    shapes = {tuple(a.shape for a in f.values()) for f in enc}
+    assert len(shapes) >= provider_auto.STREAM_SCANS // 2  # voxel counts differ from scan to scan
+    # the pipeline's sessions ran only in the timing (and one check of the first scan's outputs):
+    # warm-up on the first scan, then every other scan once
+    per_graph = provider_auto.WARMUP_CALLS + provider_auto.STREAM_SCANS - 1
+    assert 0 < sum(r in own for r in runs) <= len(on_ov) * per_graph
 
 
 def test_another_library_version_or_thread_count_measures_again(folder, cache, monkeypatch):

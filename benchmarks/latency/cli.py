@@ -58,6 +58,12 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     help="torch.compile among the peers (compiles for minutes) [on; quick off].",
 )
 @click.option(
+    "--peers-on-one-frame",
+    is_flag=True,
+    help="Time the peers on the timing input repeated (as before 2026-12-05), not on a stream of "
+    "distinct frames; OpenVINO looks faster so.",
+)
+@click.option(
     "--against-old",
     is_flag=True,
     help="Random models: also time the same model as its graphs were before issue 23 (dense head, "
@@ -88,6 +94,7 @@ def latency_command(
     int8: bool,
     peers: bool,
     torch_compile: bool | None,
+    peers_on_one_frame: bool,
     against_old: bool,
     data: Path | None,
     dataset: str | None,
@@ -118,6 +125,7 @@ def latency_command(
         "int8": int8,
         "peers": peers,
         "torch_compile": torch_compile,
+        "peer_stream": not peers_on_one_frame,
         "against_old": against_old,
         "data": data,
         "dataset": dataset,

@@ -150,6 +150,8 @@ def peers_section(res: dict[str, Any]) -> list[str]:
         f"## Peer engines per stage, ms (same graphs, inputs and {p['threads']} threads; "
         f"{p['repeats']} interleaved repeats, medians)",
         "",
+        f"Input: {p.get('input', 'one frame, repeated')}.",
+        "",
         "| stage | " + " | ".join(labels[e] for e in engines) + " | ours / best peer |",
         "|---|" + "---:|" * (len(engines) + 1),
     ]

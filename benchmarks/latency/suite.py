@@ -82,6 +82,7 @@ class LatencyConfig:
     peers: bool = True  # time the peer engines (OpenVINO, torch eager, torch.compile) per stage
     torch_compile: bool = True  # include torch.compile among the peers (compiles for minutes)
     peer_repeats: int = 5  # interleaved repeats per engine and stage
+    peer_stream: bool = True  # peers on a stream of distinct frames; False: one frame repeated (before 12-05)
     against_old: bool = False  # random models: time the old graphs in this run (latency/old_graphs.py)
 
     @property
@@ -148,6 +149,17 @@ def _inputs(cfg: LatencyConfig, pipe: Pipeline) -> tuple[Any, str, list]:
 
     frames = load_frames(cfg.data, str(cfg.dataset), cfg.frames, pipe)
     return frames[0][1], f"{cfg.dataset} frame {frames[0][0]}", frames
+
+
+def _stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list) -> list:
+    """The peers' stream (``peers.peer_comparison``): the timing input to warm up, then the other
+    --data frames, else seeded synthetic scans of the same size (one more than the repeats)."""
+    rest = [f[1] for f in frames[1:]]
+    if not rest:
+        n = len(points.points) if isinstance(points, PointCloud) else len(points)
+        seeds = [cfg.seed + 7919 * (k + 1) for k in range(cfg.peer_repeats)]  # 7919: apart from the sweeps'
+        rest = [synthetic_radar(pipe.columns, pipe.artifact.grid, n, s) for s in seeds]
+    return [points, *rest]
 
 
 def _notes(res: dict[str, Any]) -> list[str]:
@@ -238,7 +250,8 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         if cfg.peers:
             log("peer engines per stage (OpenVINO, torch eager, torch.compile) ...")
             model, reps = pair.msdnet.torch_model, cfg.peer_repeats
-            peers = peer_comparison(model, msd, points, cfg.threads, reps, cfg.seed, cfg.torch_compile)
+            scans = _stream(cfg, msd, points, frames) if cfg.peer_stream else [points]
+            peers = peer_comparison(model, msd, scans, cfg.threads, reps, cfg.seed, cfg.torch_compile)
         old: dict[str, Any] = {"note": "not run (--against-old: random models only)"}
         if cfg.against_old:
             log("the same model as its graphs were before issue 23, interleaved ...")
