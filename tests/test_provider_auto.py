@@ -138,6 +138,24 @@ def test_engines_are_timed_on_a_stream_of_scans(folder, cache, monkeypatch):
     assert 0 < sum(r in own for r in runs) <= len(on_ov) * per_graph
 
 
+def test_seeded_scans_are_radar_like(folder):
+    """Clumps inside the box and the field of view: a real frame's points lie on a few objects."""
+    pipe = Pipeline.from_dir(folder, threads=1)
+    grid = pipe.artifact.grid
+    lo, hi = np.asarray(grid.point_range[:3], np.float32), np.asarray(grid.point_range[3:], np.float32)
+    a, b = (provider_auto.seeded_scan(pipe, np.random.default_rng(k), 400) for k in (0, 1))
+    assert a.shape == (400, len(pipe.columns)) and a.dtype == np.float32 and not np.array_equal(a, b)
+    assert np.all((a[:, :3] >= lo) & (a[:, :3] < hi)) and not a[:, 3:].any()
+    angle = np.degrees(np.abs(np.arctan2(a[:, 1], a[:, 0])))
+    assert np.mean(angle <= grid.fov_deg + 5) > 0.9
+    spread = np.linalg.norm(a[:, None, :3] - a[None, :, :3], axis=-1)
+    np.fill_diagonal(spread, np.inf)
+    uniform = lo + (hi - lo) * np.random.default_rng(2).random((400, 3))
+    far = np.linalg.norm(uniform[:, None] - uniform[None], axis=-1)
+    np.fill_diagonal(far, np.inf)
+    assert np.median(spread.min(1)) < 0.5 * np.median(far.min(1))  # clumped
+
+
 def test_another_library_version_or_thread_count_measures_again(folder, cache, monkeypatch):
     art = load_artifact(folder)
     key = provider_auto.cache_key(art.manifest, onnx_spec.ENCODER.file, 1)

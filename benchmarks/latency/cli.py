@@ -58,6 +58,9 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     help="torch.compile among the peers (compiles for minutes) [on; quick off].",
 )
 @click.option(
+    "--peer-repeats", type=click.IntRange(min=1), help="Interleaved repeats of the peer table [5; quick 2]."
+)
+@click.option(
     "--peers-on-one-frame",
     is_flag=True,
     help="Time the peers on the timing input repeated (as before 2026-12-05), not on a stream of "
@@ -94,6 +97,7 @@ def latency_command(
     int8: bool,
     peers: bool,
     torch_compile: bool | None,
+    peer_repeats: int | None,
     peers_on_one_frame: bool,
     against_old: bool,
     data: Path | None,
@@ -125,6 +129,7 @@ def latency_command(
         "int8": int8,
         "peers": peers,
         "torch_compile": torch_compile,
+        "peer_repeats": peer_repeats,
         "peer_stream": not peers_on_one_frame,
         "against_old": against_old,
         "data": data,
