@@ -210,6 +210,26 @@ def test_quick_run_times_the_sparse_head_and_the_peers(quick):
     assert "Peer engines per stage" in md and "Coarse-to-fine head vs the dense head" in md
 
 
+def test_peers_run_a_stream_and_ours_on_openvino_is_that_peer(tmp_path):
+    pytest.importorskip("openvino")
+    from msdnet.benchmarks.latency.peer_report import peers_section
+    from msdnet.benchmarks.latency.peers import peer_comparison
+    from msdnet.benchmarks.latency.timing import synthetic_radar
+
+    pipe = Pipeline.from_dir(make_artifact(tmp_path / "a", "student"), "openvino", threads=1)
+    pipe.gate = None  # the dense head, which --provider openvino runs on OpenVINO
+    scans = [synthetic_radar(pipe.columns, pipe.artifact.grid, 200, s) for s in range(4)]
+    p = peer_comparison(None, pipe, scans, threads=1, repeats=3)
+    assert p["input"] == "a stream: 3 distinct frames timed, each engine seeing each once"
+    head, enc = p["stages"]["recon_head"], p["stages"]["encoder"]
+    assert head["ours_is"] == "openvino" and head["onnxruntime"] == head["openvino"]
+    assert enc["ours_is"] is None and enc["onnxruntime"] != enc["openvino"]
+    text = "\n".join(peers_section({"peers": p, "provider": "openvino"}))
+    assert "† ours runs OpenVINO on the stages marked" in text and text.count("†") == 2
+    one = peer_comparison(None, pipe, scans[:1], threads=1, repeats=2)
+    assert one["input"] == "1 distinct frame(s) over 2 repeats (one frame: repeated)"
+
+
 def test_random_models_take_the_head_and_loop_steps_asked_for(tmp_path):
     from msdnet.benchmarks.latency.suite import LatencyConfig, _models
 

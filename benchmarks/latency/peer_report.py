@@ -157,6 +157,8 @@ def peers_section(res: dict[str, Any]) -> list[str]:
     ]
     for stage, row in p["stages"].items():
         cells = [_fmt(row[e]["median"]) if e in row else "–" for e in engines]
+        if row.get("ours_is") and cells:
+            cells[0] += "†"
         ratio = row.get("engine_over_best_peer")
         best = ENGINE_LABELS.get(row.get("best_peer", ""), "")
         out.append(
@@ -177,6 +179,13 @@ def peers_section(res: dict[str, Any]) -> list[str]:
             f"Against the full-precision peers only: ours / "
             f"{ENGINE_LABELS.get(p['best_f32_peer'], p['best_f32_peer'])} "
             f"**{_fmt(p['engine_over_best_f32_peer'], 3)}**.",
+        ]
+    shared = sorted({ENGINE_LABELS[r["ours_is"]] for r in p["stages"].values() if r.get("ours_is")})
+    if shared:
+        out += [
+            "",
+            f"† ours runs {' / '.join(shared)} on the stages marked (the graph, precision and settings "
+            "of that peer): its calls there are that peer's, timed once.",
         ]
     out += ["", "\\* onnxruntime's time stands in for the stages that engine could not run:"]
     for stage, row in p["stages"].items():
