@@ -2,19 +2,20 @@
 
 At load (``Pipeline(artifact, "auto")``) every graph is first opened on onnxruntime; its inputs
 are then the model's own: ``STREAM_SCANS`` seeded radar-like scans (points in clumps in the
-field of view), of different point counts, each through the pipeline's voxelizer and rulebooks, the
-encoder, the adapter (MSDNet) and the manifest's T_m loop on throwaway onnxruntime sessions (so
-the timed ones have seen none of them); each graph keeps the inputs each scan gave it (the step
-graph: those of the middle step; the coarse-to-fine head: the manifest's gate, 0.5 without one).
-Each engine runs the first scan untimed, then every other scan once, engines interleaved (order
-rotated per scan), outputs bound as the pipeline binds them: a stream of inputs it has not seen,
-as a sensor gives. That matters: OpenVINO prepares its kernels for each new input shape (the
-encoder's voxel and rulebook counts and the sparse head's gated voxels change every frame), so
-on a graph called again and again on one input it is faster than on a stream (``astyx-lite``,
-2 threads, 440 Astyx frames in order: 24.5 ms a frame with the picks timed on one repeated
-input, 22.3 on onnxruntime alone; ``docs/results/latency-twelfth``). Each graph keeps:
+field of view), of different point counts, each through the pipeline's voxelizer and rulebooks,
+the encoder, the adapter (MSDNet) and the manifest's T_m loop on throwaway onnxruntime sessions
+(so the timed ones have seen none of them); each graph keeps the calls each scan made of it (the
+step graph: T_m; the coarse-to-fine head: with the manifest's gate, 0.5 without one). Each
+engine runs the first scan's calls untimed, then every other scan's once, back to back as the
+pipeline makes them, engines interleaved (order rotated per scan), outputs bound as the pipeline
+binds them: a stream of inputs it has not seen, as a sensor gives. That matters: OpenVINO
+prepares its kernels for each new input shape (the encoder's voxel and rulebook counts and the
+sparse head's gated voxels change every frame), so on a graph called again and again on one
+input it is faster than on a stream (``astyx-lite``, 2 threads, 440 Astyx frames in order: 24.5
+ms a frame with the picks timed on one repeated input, 22.3 on onnxruntime alone;
+``docs/results/latency-twelfth``). Each graph keeps:
 
-- OpenVINO when its time over onnxruntime's on the same scan, median over the scans, is at most
+- OpenVINO when its time over onnxruntime's for the same scan, median over the scans, is at most
   1 - ``MARGIN`` *and* its outputs agree with onnxruntime's within the export tolerances
   (``AGREE_REL_TOL``, ``AGREE_COS_TOL``, and for the coarse-to-fine head's gated voxels
   ``AGREE_E2E_TOL``: the values of ``export.verify``); else onnxruntime (near ties stay on the
@@ -68,7 +69,7 @@ AGREE_E2E_TOL = 0.002  # = export.verify.E2E_DIFF_TOL: voxels gated by one engin
 BF16_REL_TOL = 0.1
 BF16_COS_TOL = 1e-3
 BF16_E2E_TOL = 0.05
-CACHE_VERSION = 2  # 1: picks timed on one repeated input (favoured OpenVINO)
+CACHE_VERSION = 3  # 1: picks timed on one repeated input (favoured OpenVINO); 2: step graph call by call
 SCAN_POINTS = 400  # points of the first scan; the others have 50 % to 150 % as many
 SCAN_CLUSTERS = 12  # clumps of points in a seeded scan
 SCAN_SPREAD = 0.015  # their standard deviation, as a share of the grid box on each axis
@@ -81,7 +82,7 @@ class EnginePick:
 
     graph: str  # graph file name
     engine: str  # ONNXRUNTIME, OPENVINO or OPENVINO_BF16
-    ms: dict[str, float] = field(default_factory=dict)  # median ms per call by engine (measured ones)
+    ms: dict[str, float] = field(default_factory=dict)  # median ms a scan by engine (measured ones)
     reason: str = ""  # one line: the comparison, or why OpenVINO was not an option
     cached: bool = False  # taken from the cache (measured by an earlier load)
     ratio: float | None = None  # OpenVINO / onnxruntime, median over the scans; None: not timed
@@ -231,41 +232,47 @@ def seeded_scan(pipe: Pipeline, rng: np.random.Generator, points: int = SCAN_POI
     return pts
 
 
-def graph_inputs(
+def frame_calls(
     pipe: Pipeline, seed: int = 0, points: int = SCAN_POINTS, sessions: dict[str, Any] | None = None
-) -> dict[str, dict[str, np.ndarray]]:
-    """Each graph's inputs on one seeded scan of ``points`` points over the grid box (module
-    docstring), run through ``sessions`` (default: the pipeline's own) with plain ``session.run``."""
+) -> dict[str, list[dict[str, np.ndarray]]]:
+    """Every graph call one seeded scan of ``points`` points makes (module docstring), in order
+    (the step graph: T_m calls, the coarse-to-fine head with the manifest's gate, 0.5 without
+    one), run through ``sessions`` (default: the pipeline's own) with plain ``session.run``."""
     sessions = pipe.sessions if sessions is None else sessions
     rng = np.random.default_rng(seed)
     enc, _, _ = pipe.encoder_feeds(seeded_scan(pipe, rng, points))
-    feeds = {onnx_spec.ENCODER.file: enc}
+    calls: dict[str, list[dict[str, np.ndarray]]] = {onnx_spec.ENCODER.file: [enc]}
     (f_s,) = sessions[onnx_spec.ENCODER.file].run(None, enc)
     x = rng.standard_normal(pipe.bev_shape, dtype=np.float32)
     if pipe.kind == "student":
-        feeds[onnx_spec.RGFD_ADAPTER.file] = {"bev_features": f_s, "noise": x}
-        (x,) = sessions[onnx_spec.RGFD_ADAPTER.file].run(None, feeds[onnx_spec.RGFD_ADAPTER.file])
+        calls[onnx_spec.RGFD_ADAPTER.file] = [{"bev_features": f_s, "noise": x}]
+        (x,) = sessions[onnx_spec.RGFD_ADAPTER.file].run(None, calls[onnx_spec.RGFD_ADAPTER.file][0])
     spec = onnx_spec.DENOISER_STEP if pipe.kind == "student" else onnx_spec.R2LDM_STEP
-    coeffs = pipe.coefficients()
-    for k, row in enumerate(coeffs):
+    calls[spec.file] = []
+    for row in pipe.coefficients():
         feed = {"x_t": x, "cond": f_s, "t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}
-        feed = {n: feed[n] for n in spec.inputs}
-        if k == len(coeffs) // 2:
-            feeds[spec.file] = feed
-        (x,) = sessions[spec.file].run(None, feed)
-    feeds[onnx_spec.RECON_HEAD.file] = {"features": x}
+        calls[spec.file].append({n: feed[n] for n in spec.inputs})
+        (x,) = sessions[spec.file].run(None, calls[spec.file][-1])
+    calls[onnx_spec.RECON_HEAD.file] = [{"features": x}]
     if onnx_spec.RECON_HEAD_SPARSE.file in sessions:
         gate = 0.5 if pipe.artifact.gate is None else pipe.artifact.gate
-        feeds[onnx_spec.RECON_HEAD_SPARSE.file] = {"features": x, "gate": np.full(1, gate, np.float32)}
-    return feeds
+        calls[onnx_spec.RECON_HEAD_SPARSE.file] = [{"features": x, "gate": np.full(1, gate, np.float32)}]
+    return calls
+
+
+def graph_inputs(
+    pipe: Pipeline, seed: int = 0, points: int = SCAN_POINTS, sessions: dict[str, Any] | None = None
+) -> dict[str, dict[str, np.ndarray]]:
+    """One call's inputs per graph of :func:`frame_calls` (the step graph: its middle step)."""
+    return {f: c[len(c) // 2] for f, c in frame_calls(pipe, seed, points, sessions).items()}
 
 
 @dataclass(frozen=True)
 class StreamInputs:
-    """What every graph is timed on: ``STREAM_SCANS`` scans' inputs and the outputs they give."""
+    """What every graph is timed on: ``STREAM_SCANS`` scans' calls and the outputs they give."""
 
-    feeds: list[dict[str, dict[str, np.ndarray]]]  # per scan: graph file -> its inputs
-    outputs: list[dict[str, list[np.ndarray]]]  # per scan: graph file -> onnxruntime's outputs
+    feeds: list[dict[str, list[dict[str, np.ndarray]]]]  # per scan: graph file -> its calls' inputs
+    outputs: list[dict[str, list[list[np.ndarray]]]]  # per scan: graph file -> onnxruntime's outputs
 
 
 def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
@@ -277,8 +284,8 @@ def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
     fresh = {f: create_session(pipe.artifact.graphs[f], f, "cpu", threads) for f in pipe.sessions}
     rest = np.linspace(SCAN_POINTS // 2, 3 * SCAN_POINTS // 2, STREAM_SCANS - 1).round().astype(int)
     counts = [SCAN_POINTS, *np.random.default_rng(0).permutation(rest)]  # sizes in no order
-    feeds = [graph_inputs(pipe, k, int(n), fresh) for k, n in enumerate(counts)]
-    outputs = [{f: fresh[f].run(None, feed) for f, feed in scan.items()} for scan in feeds]
+    feeds = [frame_calls(pipe, k, int(n), fresh) for k, n in enumerate(counts)]
+    outputs = [{f: [fresh[f].run(None, c) for c in cs] for f, cs in scan.items()} for scan in feeds]
     return StreamInputs(feeds, outputs)
 
 
@@ -314,27 +321,33 @@ class _Bound:
         return b
 
 
-WARMUP_CALLS = 2  # untimed calls on the first scan: a session's first call allocates its arena
+WARMUP_CALLS = 2  # untimed runs of the first scan: a session's first call allocates its arena
 
 
 def time_engines(
-    sessions: dict[str, Any], feeds: list[dict[str, np.ndarray]], refs: list[list[np.ndarray]]
+    sessions: dict[str, Any],
+    scans: list[list[dict[str, np.ndarray]]],
+    refs: list[list[list[np.ndarray]]],
 ) -> dict[str, np.ndarray]:
-    """ms of each engine's call on each feed but the first, over a stream: ``feeds[0]`` untimed
-    (``WARMUP_CALLS``), then every other feed once per engine, engines interleaved, order rotated
-    per feed."""
-    binds = {e: _Bound.of(s, refs[0]) for e, s in sessions.items()}
+    """ms each engine takes for each scan's calls but the first scan's, over a stream: ``scans[0]``
+    untimed (``WARMUP_CALLS`` times), then every other scan once per engine, its calls back to
+    back as the pipeline makes them (the step graph: T_m calls), engines interleaved, order rotated
+    per scan."""
+    binds = {e: _Bound.of(s, refs[0][0]) for e, s in sessions.items()}
     names = list(sessions)
+
+    def run(e: str, calls: list[dict[str, np.ndarray]]) -> None:
+        for feed in calls:
+            sessions[e].run_with_iobinding(binds[e].feed(feed))
+
     for e in names:
-        b = binds[e].feed(feeds[0])
         for _ in range(WARMUP_CALLS):
-            sessions[e].run_with_iobinding(b)
+            run(e, scans[0])
     samples: dict[str, list[float]] = {e: [] for e in names}
-    for k in range(1, len(feeds)):
+    for k in range(1, len(scans)):
         for e in names[k % len(names) :] + names[: k % len(names)]:
-            b = binds[e].feed(feeds[k])
             t0 = time.perf_counter()
-            sessions[e].run_with_iobinding(b)
+            run(e, scans[k])
             samples[e].append(time.perf_counter() - t0)
     return {e: np.asarray(v) * 1e3 for e, v in samples.items()}
 
@@ -382,10 +395,11 @@ def disagreement(
 
 
 def _measure(pipe: Pipeline, file: str, ov: Any, stream: StreamInputs) -> dict[str, Any]:
-    feeds = [scan[file] for scan in stream.feeds]
+    feeds = [scan[file] for scan in stream.feeds]  # per scan: the graph's calls
     refs = [scan[file] for scan in stream.outputs]
     names = [o.name for o in pipe.sessions[file].get_outputs()]
-    why = disagreement([np.asarray(a) for a in ov.run(None, feeds[0])], refs[0], names, ov.precision)
+    got = [np.asarray(a) for a in ov.run(None, feeds[0][0])]
+    why = disagreement(got, refs[0][0], names, ov.precision)
     rival = OPENVINO if ov.precision == "f32" else OPENVINO_BF16
     calls = time_engines({ONNXRUNTIME: pipe.sessions[file], rival: ov}, feeds, refs)
     ms = {e: float(np.median(v)) for e, v in calls.items()}
