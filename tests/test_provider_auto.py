@@ -125,7 +125,7 @@ def test_engines_are_timed_on_a_stream_of_scans(folder, cache, monkeypatch):
     pipe = Pipeline.from_dir(folder, "auto", threads=1)
     on_ov = [f for f in pipe.sessions if f != onnx_spec.RGFD_ADAPTER.file]
     assert len(timed) == len(on_ov)
-    steps = pipe.coefficients().shape[0]
+    steps = pipe.coefficients(provider_auto._loop_steps(pipe)).shape[0]
     for scans in timed:
         assert len(scans) == provider_auto.STREAM_SCANS
         first = [next(iter(calls[0].values())) for calls in scans]  # each scan's first input
@@ -140,6 +140,18 @@ def test_engines_are_timed_on_a_stream_of_scans(folder, cache, monkeypatch):
     per_scan = sum(len(scans[0]) for scans in timed)
     scans_run = provider_auto.WARMUP_CALLS + provider_auto.STREAM_SCANS - 1
     assert 0 < sum(r in own for r in runs) <= per_scan * scans_run
+
+
+def test_a_long_loop_is_cut_for_the_timing(folder, monkeypatch):
+    pipe = Pipeline.from_dir(folder, threads=1)
+    calls = pipe.coefficients().shape[0]
+    assert calls >= 2
+    monkeypatch.setattr(provider_auto, "STREAM_LOOP_STEPS", calls)
+    assert provider_auto._loop_steps(pipe) is None  # short enough: the manifest's own
+    monkeypatch.setattr(provider_auto, "STREAM_LOOP_STEPS", calls - 1)
+    assert provider_auto._loop_steps(pipe) == calls - 1
+    inputs = provider_auto.frame_calls(pipe, steps=provider_auto._loop_steps(pipe))
+    assert len(inputs[onnx_spec.DENOISER_STEP.file]) == calls - 1
 
 
 def test_seeded_scans_are_radar_like(folder):

@@ -3,10 +3,11 @@
 At load (``Pipeline(artifact, "auto")``) every graph is first opened on onnxruntime; its inputs
 are then the model's own: ``STREAM_SCANS`` seeded radar-like scans (points in clumps in the
 field of view), of different point counts, each through the pipeline's voxelizer and rulebooks,
-the encoder, the adapter (MSDNet) and the manifest's T_m loop on throwaway onnxruntime sessions
-(so the timed ones have seen none of them); each graph keeps the calls each scan made of it (the
-step graph: T_m; the coarse-to-fine head: with the manifest's gate, 0.5 without one). Each
-engine runs the first scan's calls untimed, then every other scan's once, back to back as the
+the encoder, the adapter (MSDNet) and the loop (the manifest's T_m, at most
+``STREAM_LOOP_STEPS``) on throwaway onnxruntime sessions (so the timed ones have seen none of
+them); each graph keeps the calls each scan made of it (the step graph: one a step; the
+coarse-to-fine head: with the manifest's gate, 0.5 without one). Each engine runs the first
+scan's calls untimed, then every other scan's once, back to back as the
 pipeline makes them, engines interleaved (order rotated per scan), outputs bound as the pipeline
 binds them: a stream of inputs it has not seen, as a sensor gives. That matters: OpenVINO
 prepares its kernels for each new input shape (the encoder's voxel and rulebook counts and the
@@ -52,6 +53,7 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
+from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 
 # a runtime.engine.pipeline.Pipeline; not imported, because the pipeline imports this module
@@ -59,6 +61,7 @@ Pipeline = Any
 
 ONNXRUNTIME, OPENVINO, OPENVINO_BF16 = "onnxruntime", "openvino", "openvino-bf16"
 STREAM_SCANS = 13  # distinct seeded scans: the first warms each engine up, the others are timed once
+STREAM_LOOP_STEPS = 4  # a scan's loop runs at most this many DDIM steps (the step graph: as many calls)
 MARGIN = 0.03  # OpenVINO is picked only when at least this much faster (median of paired ratios)
 AGREE_REL_TOL = 1e-4  # = export.verify.GRAPH_REL_TOL (tests/test_provider_auto.py checks)
 AGREE_COS_TOL = 1e-6  # = export.verify.GRAPH_COS_TOL
@@ -233,11 +236,16 @@ def seeded_scan(pipe: Pipeline, rng: np.random.Generator, points: int = SCAN_POI
 
 
 def frame_calls(
-    pipe: Pipeline, seed: int = 0, points: int = SCAN_POINTS, sessions: dict[str, Any] | None = None
+    pipe: Pipeline,
+    seed: int = 0,
+    points: int = SCAN_POINTS,
+    sessions: dict[str, Any] | None = None,
+    steps: int | None = None,
 ) -> dict[str, list[dict[str, np.ndarray]]]:
     """Every graph call one seeded scan of ``points`` points makes (module docstring), in order
-    (the step graph: T_m calls, the coarse-to-fine head with the manifest's gate, 0.5 without
-    one), run through ``sessions`` (default: the pipeline's own) with plain ``session.run``."""
+    (the step graph: one call per step of ``steps``, None: the manifest's T_m; the coarse-to-fine
+    head with the manifest's gate, 0.5 without one), run through ``sessions`` (default: the
+    pipeline's own) with plain ``session.run``."""
     sessions = pipe.sessions if sessions is None else sessions
     rng = np.random.default_rng(seed)
     enc, _, _ = pipe.encoder_feeds(seeded_scan(pipe, rng, points))
@@ -249,7 +257,7 @@ def frame_calls(
         (x,) = sessions[onnx_spec.RGFD_ADAPTER.file].run(None, calls[onnx_spec.RGFD_ADAPTER.file][0])
     spec = onnx_spec.DENOISER_STEP if pipe.kind == "student" else onnx_spec.R2LDM_STEP
     calls[spec.file] = []
-    for row in pipe.coefficients():
+    for row in pipe.coefficients(steps):
         feed = {"x_t": x, "cond": f_s, "t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}
         calls[spec.file].append({n: feed[n] for n in spec.inputs})
         (x,) = sessions[spec.file].run(None, calls[spec.file][-1])
@@ -284,9 +292,22 @@ def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
     fresh = {f: create_session(pipe.artifact.graphs[f], f, "cpu", threads) for f in pipe.sessions}
     rest = np.linspace(SCAN_POINTS // 2, 3 * SCAN_POINTS // 2, STREAM_SCANS - 1).round().astype(int)
     counts = [SCAN_POINTS, *np.random.default_rng(0).permutation(rest)]  # sizes in no order
-    feeds = [frame_calls(pipe, k, int(n), fresh) for k, n in enumerate(counts)]
+    steps = _loop_steps(pipe)
+    feeds = [frame_calls(pipe, k, int(n), fresh, steps) for k, n in enumerate(counts)]
     outputs = [{f: [fresh[f].run(None, c) for c in cs] for f, cs in scan.items()} for scan in feeds]
     return StreamInputs(feeds, outputs)
+
+
+def _loop_steps(pipe: Pipeline) -> int | None:
+    """``STREAM_LOOP_STEPS`` when the manifest's loop makes more network calls (R2LDM's 128 steps
+    would take minutes per load at paper size) and the schedule allows it, else None (its own)."""
+    if pipe.coefficients().shape[0] <= STREAM_LOOP_STEPS:
+        return None
+    try:
+        pipe.coefficients(STREAM_LOOP_STEPS)
+    except MsdnetError:
+        return None
+    return STREAM_LOOP_STEPS
 
 
 @dataclass
