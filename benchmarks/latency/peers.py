@@ -10,7 +10,7 @@ Engines:
   ours is an OpenVINO session it is the ``openvino`` (or ``openvino_bf16``) peer itself, same
   graph, precision and settings, so that peer's calls are ours too (``ours_is``): timed twice, the
   one running second would find the kernels the first prepared for each new input shape (measured:
-  a second compiled copy of the bf16 encoder takes 2.3 ms on a shape new to it, the first 4.1);
+  a second compiled copy of the bf16 encoder takes 2.14 ms on a shape new to it, the first 4.27);
 - ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
   (``runtime.engine.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is

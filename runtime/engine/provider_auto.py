@@ -295,6 +295,7 @@ def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
     steps = _loop_steps(pipe)
     feeds = [frame_calls(pipe, k, int(n), fresh, steps) for k, n in enumerate(counts)]
     outputs = [{f: [fresh[f].run(None, c) for c in cs] for f, cs in scan.items()} for scan in feeds]
+    pipe.coefficients()  # a sampler keeps the last plan's re-noising: the manifest's again
     return StreamInputs(feeds, outputs)
 
 
@@ -352,8 +353,8 @@ def time_engines(
 ) -> dict[str, np.ndarray]:
     """ms each engine takes for each scan's calls but the first scan's, over a stream: ``scans[0]``
     untimed (``WARMUP_CALLS`` times), then every other scan once per engine, its calls back to
-    back as the pipeline makes them (the step graph: T_m calls), engines interleaved, order rotated
-    per scan."""
+    back as the pipeline makes them (the step graph: one a loop step), engines interleaved, order
+    rotated per scan."""
     binds = {e: _Bound.of(s, refs[0][0]) for e, s in sessions.items()}
     names = list(sessions)
 
