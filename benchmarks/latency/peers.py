@@ -48,9 +48,8 @@ import torch
 
 from msdnet.benchmarks.latency.timing import Scan
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.provider_auto import failure_reason
+from msdnet.runtime.engine.provider_auto import failure_reason, fresh_sessions, scan_calls
 from msdnet.runtime.model import onnx_spec
-from msdnet.training.batch import make_encoder_input
 
 ENGINES = ("onnxruntime", "openvino", "openvino_bf16", "torch_eager", "torch_compile")
 REDUCED_PRECISION = ("openvino_bf16",)  # peers that do not compute in f32
@@ -67,36 +66,17 @@ def stage_specs(pipe: Pipeline) -> dict[str, onnx_spec.GraphSpec]:
     return out
 
 
-def fresh_sessions(pipe: Pipeline, threads: int) -> dict[str, Any]:
-    """onnxruntime CPU sessions of the pipeline's graphs that the timed sessions do not share."""
-    from msdnet.runtime.engine.session import create_session
-
-    return {f: create_session(pipe.artifact.graphs[f], f, "cpu", threads) for f in pipe.sessions}
-
-
 def capture_feeds(
     pipe: Pipeline, points: Scan, seed: int = 0, sessions: dict[str, Any] | None = None
 ) -> dict[str, Feeds]:
-    """Every graph input of one frame (the pipeline's arithmetic with plain ``session.run`` on
-    ``sessions``, default the pipeline's own)."""
-    sessions = pipe.sessions if sessions is None else sessions
-    art = pipe.artifact
-    enc = make_encoder_input([pipe.select_columns(points)], art.grid, art.inputs.max_voxels)
-    feeds: dict[str, Feeds] = {}
-    feeds["encoder"] = [{n: t.numpy() for n, t in zip(onnx_spec.ENCODER.inputs, enc.tensors(), strict=True)}]
-    (f_s,) = sessions[onnx_spec.ENCODER.file].run(None, feeds["encoder"][0])
+    """Every graph input of one frame per stage (``provider_auto.scan_calls``: the pipeline's
+    arithmetic with plain ``session.run`` on ``sessions``, default the pipeline's own; the head
+    with ``pipe.gate``)."""
     noise = np.random.default_rng(seed).standard_normal(pipe.bev_shape, dtype=np.float32)
-    x = noise
-    if pipe.kind == "student":
-        feeds["rgfd_adapter"] = [{"bev_features": f_s, "noise": noise}]
-        (x,) = sessions[onnx_spec.RGFD_ADAPTER.file].run(None, feeds["rgfd_adapter"][0])
-    spec = stage_specs(pipe)["ddim_loop"]
-    feeds["ddim_loop"] = []
-    for row in pipe.coefficients():
-        feed = {"x_t": x, "cond": f_s, "t": row[0:1], "abar_t": row[1:2], "abar_prev": row[2:3]}
-        feeds["ddim_loop"].append({k: feed[k] for k in spec.inputs})
-        (x,) = sessions[spec.file].run(None, feeds["ddim_loop"][-1])
-    head: dict[str, np.ndarray] = {"features": x}
+    sessions = pipe.sessions if sessions is None else sessions
+    calls = scan_calls(pipe, pipe.select_columns(points), noise, sessions)
+    feeds = {stage: calls[spec.file] for stage, spec in stage_specs(pipe).items() if stage != "recon_head"}
+    head: dict[str, np.ndarray] = {"features": calls[onnx_spec.RECON_HEAD.file][0]["features"]}
     if pipe.gate is not None:
         head["gate"] = np.full(1, pipe.gate, np.float32)
     feeds["recon_head"] = [head]

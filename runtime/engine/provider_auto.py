@@ -235,25 +235,23 @@ def seeded_scan(pipe: Pipeline, rng: np.random.Generator, points: int = SCAN_POI
     return pts
 
 
-def frame_calls(
+def scan_calls(
     pipe: Pipeline,
-    seed: int = 0,
-    points: int = SCAN_POINTS,
-    sessions: dict[str, Any] | None = None,
+    pts: np.ndarray,
+    noise: np.ndarray,
+    sessions: dict[str, Any],
     steps: int | None = None,
 ) -> dict[str, list[dict[str, np.ndarray]]]:
-    """Every graph call one seeded scan of ``points`` points makes (module docstring), in order
-    (the step graph: one call per step of ``steps``, None: the manifest's T_m; the coarse-to-fine
-    head with the manifest's gate, 0.5 without one), run through ``sessions`` (default: the
-    pipeline's own) with plain ``session.run``."""
-    sessions = pipe.sessions if sessions is None else sessions
-    rng = np.random.default_rng(seed)
-    enc, _, _ = pipe.encoder_feeds(seeded_scan(pipe, rng, points))
+    """Every graph call the pipeline makes for ``pts`` (N, C) float32 in the model's columns, the
+    loop starting from ``noise`` (``pipe.bev_shape``), in order (the step graph: one call per step
+    of ``steps``, None: the manifest's T_m; the coarse-to-fine head with the manifest's gate, 0.5
+    without one), run through ``sessions`` with plain ``session.run``."""
+    enc, _, _ = pipe.encoder_feeds(pts)
     calls: dict[str, list[dict[str, np.ndarray]]] = {onnx_spec.ENCODER.file: [enc]}
     (f_s,) = sessions[onnx_spec.ENCODER.file].run(None, enc)
-    x = rng.standard_normal(pipe.bev_shape, dtype=np.float32)
+    x = noise
     if pipe.kind == "student":
-        calls[onnx_spec.RGFD_ADAPTER.file] = [{"bev_features": f_s, "noise": x}]
+        calls[onnx_spec.RGFD_ADAPTER.file] = [{"bev_features": f_s, "noise": noise}]
         (x,) = sessions[onnx_spec.RGFD_ADAPTER.file].run(None, calls[onnx_spec.RGFD_ADAPTER.file][0])
     spec = onnx_spec.DENOISER_STEP if pipe.kind == "student" else onnx_spec.R2LDM_STEP
     calls[spec.file] = []
@@ -266,6 +264,21 @@ def frame_calls(
         gate = 0.5 if pipe.artifact.gate is None else pipe.artifact.gate
         calls[onnx_spec.RECON_HEAD_SPARSE.file] = [{"features": x, "gate": np.full(1, gate, np.float32)}]
     return calls
+
+
+def frame_calls(
+    pipe: Pipeline,
+    seed: int = 0,
+    points: int = SCAN_POINTS,
+    sessions: dict[str, Any] | None = None,
+    steps: int | None = None,
+) -> dict[str, list[dict[str, np.ndarray]]]:
+    """:func:`scan_calls` of one seeded scan of ``points`` points (module docstring) through
+    ``sessions`` (default: the pipeline's own)."""
+    rng = np.random.default_rng(seed)
+    pts = seeded_scan(pipe, rng, points)
+    noise = rng.standard_normal(pipe.bev_shape, dtype=np.float32)
+    return scan_calls(pipe, pts, noise, pipe.sessions if sessions is None else sessions, steps)
 
 
 def graph_inputs(
@@ -287,9 +300,7 @@ def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
     """The scans of the module docstring (``STREAM_SCANS``, seeds 0, 1, ...: the first is
     :func:`graph_inputs`'s default, the others of ``SCAN_POINTS`` x 0.5 to 1.5 points), run on
     throwaway onnxruntime sessions so that the pipeline's own have seen none of them."""
-    from msdnet.runtime.engine.session import create_session
-
-    fresh = {f: create_session(pipe.artifact.graphs[f], f, "cpu", threads) for f in pipe.sessions}
+    fresh = fresh_sessions(pipe, threads)
     rest = np.linspace(SCAN_POINTS // 2, 3 * SCAN_POINTS // 2, STREAM_SCANS - 1).round().astype(int)
     counts = [SCAN_POINTS, *np.random.default_rng(0).permutation(rest)]  # sizes in no order
     steps = _loop_steps(pipe)
@@ -297,6 +308,14 @@ def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
     outputs = [{f: [fresh[f].run(None, c) for c in cs] for f, cs in scan.items()} for scan in feeds]
     pipe.coefficients()  # a sampler keeps the last plan's re-noising: the manifest's again
     return StreamInputs(feeds, outputs)
+
+
+def fresh_sessions(pipe: Pipeline, threads: int | None) -> dict[str, Any]:
+    """onnxruntime CPU sessions of the pipeline's graphs that its own sessions do not share (what
+    runs on them leaves the timed sessions unwarmed)."""
+    from msdnet.runtime.engine.session import create_session
+
+    return {f: create_session(pipe.artifact.graphs[f], f, "cpu", threads) for f in pipe.sessions}
 
 
 def _loop_steps(pipe: Pipeline) -> int | None:
