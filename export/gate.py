@@ -128,7 +128,7 @@ def add_sparse_head(
     from msdnet.training.batch import make_encoder_input
     from msdnet.training.calibrate import pick_frames
     from msdnet.training.checkpoint import load_checkpoint
-    from msdnet.training.data import make_splits
+    from msdnet.training.data import run_splits
 
     art = load_artifact(folder)
     model, cfg, state = load_checkpoint(checkpoint)
@@ -154,14 +154,13 @@ def add_sparse_head(
     entry |= {"inputs": list(spec.inputs), "outputs": list(spec.outputs)}
     manifest["graphs"] = [g for g in manifest["graphs"] if g.get("file") != spec.file] + [entry]
     _write_manifest(folder, {**manifest, "gate": None})  # the dense head until calibrated
-    holdout = float(state.dataset.get("holdout", 0.0) or 0.0)
-    val_fraction = float(state.dataset.get("val_fraction", 0.2))
-    fit, select = make_splits(dataset, str(data), cfg, val_fraction=val_fraction, holdout=holdout)
-    frames_ds = select if holdout > 0 else fit
+    held_out = float(state.dataset.get("holdout", 0.0) or 0.0) > 0
+    fit, select = run_splits(dataset, str(data), cfg, state.dataset)
+    frames_ds = select if held_out else fit
     scans = [frames_ds[i][0] for i in pick_frames(len(frames_ds), frames)]
     cal = calibrate_gate(Pipeline.from_dir(folder), scans, art.threshold, recall)
     manifest["gate"] = cal.gate
-    manifest["gate_calibration"] = asdict(cal) | {"split": "selection slice" if holdout > 0 else "training"}
+    manifest["gate_calibration"] = asdict(cal) | {"split": "selection slice" if held_out else "training"}
     _write_manifest(folder, manifest)
     return cal
 

@@ -96,6 +96,35 @@ def test_quick_run_writes_markdown_and_plots(quick):
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporary file left
 
 
+def test_quick_run_times_whole_frames_on_a_stream(quick):
+    out, res = quick
+    s = res["stream"]
+    assert s["frames"] == 3 and s["source"] == "3 seeded synthetic scans of 300 points"
+    assert set(s["stages_ms"]) == set(STAGES) and all(v["n"] == 3 for v in s["stages_ms"].values())
+    assert s["voxels_median"] > 0 and s["decoded_median"] > 0 and s["head_voxels_median"] > 0
+    assert res["models"]["msdnet"]["gate"] is not None and s["dense_head_ms"]["n"] == 3
+    want = s["stages_ms"]["recon_head"]["median"] / s["dense_head_ms"]["median"]
+    assert res["ratios"]["head_over_dense_head_stream"] == s["head_over_dense_head"] == want
+    ratio = res["ratios"]["stream_over_repeated"]
+    assert _finite(ratio) and ratio == s["stages_ms"]["total"]["median"] / res["stages_ms"]["total"]["median"]
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "## Whole frames on a stream, ms" in md and "3 seeded synthetic scans of 300 points" in md
+    assert "coarse-to-fine head / dense head, on a stream" in md
+
+
+def test_the_frame_stream_reads_frames_no_other_measurement_reads(pipe, vod_root, tmp_path):
+    from msdnet.benchmarks.latency.suite import LatencyConfig, _frame_stream
+
+    frames = load_frames(vod_root, "vod", 1, pipe)
+    cfg = LatencyConfig(out=tmp_path, data=vod_root, dataset="vod", stream_frames=5)
+    scans, source = _frame_stream(cfg, pipe, frames[0][1], frames)
+    assert len(scans) == 2 and source == "2 vod frames 01047 to 01201, in order"
+    every = load_frames(vod_root, "vod", None, pipe)
+    assert [len(s) for s in scans] == [len(f[1]) for f in every if f[0] != frames[0][0]]
+    scans, source = _frame_stream(cfg, pipe, frames[0][1], every)
+    assert scans == [] and source.startswith("not run: --data has no frame besides the 3")
+
+
 def test_plain_run_equals_the_pipeline(pipe):
     pts = synthetic_radar(pipe.columns, pipe.artifact.grid, 300, seed=3)
     res = pipe(pts, steps=5, seed=7)

@@ -15,7 +15,7 @@ from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.training.augment import augment_pair
 from msdnet.training.batch import collate
 from msdnet.training.config import AugmentConfig
-from msdnet.training.data import make_splits
+from msdnet.training.data import make_splits, run_splits
 from msdnet.training.distributed import DistInfo, EpochSampler
 from msdnet.training.latent import measure_latent_norm
 from msdnet.training.models import build_model
@@ -69,6 +69,17 @@ def test_holdout_is_the_end_of_the_training_range_and_never_validation(astyx_roo
     assert fit.frame_ids + select.frame_ids == train.frame_ids  # contiguous, in order
     assert select.frame_ids == train.frame_ids[-6:]
     assert not set(select.frame_ids) & set(val.frame_ids)
+
+
+def test_run_splits_are_the_ones_the_run_recorded(astyx_root):
+    cfg = tiny_config("astyx")
+    fit, select = run_splits("astyx", astyx_root, cfg, {"holdout": 0.15, "val_fraction": 0.25})
+    want_fit, want_select = make_splits("astyx", astyx_root, cfg, val_fraction=0.25, holdout=0.15)
+    assert select.frame_ids and select.frame_ids == want_select.frame_ids
+    assert fit.frame_ids == want_fit.frame_ids
+    train, val = run_splits("astyx", astyx_root, cfg, {"val_fraction": 0.25})  # a run with no holdout
+    assert train.frame_ids == fit.frame_ids + select.frame_ids and val.frame_ids
+    assert not set(val.frame_ids) & set(train.frame_ids)
 
 
 def test_augmented_keys_are_reproducible_and_the_sampler_yields_them(astyx_root):

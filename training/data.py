@@ -182,3 +182,14 @@ def make_splits(
         train_idx, val_idx = train_idx[:-n_hold], train_idx[-n_hold:]
     fit = PairDataset(frames, train_idx, cfg, augment=augment, augment_seed=augment_seed)
     return fit, PairDataset(frames, val_idx, cfg)
+
+
+def run_splits(
+    dataset: str, root: str | Path, cfg: ModelConfig, recorded: dict[str, Any]
+) -> tuple[PairDataset, PairDataset]:
+    """:func:`make_splits` as a training run made them, from what its checkpoint recorded
+    (``TrainState.dataset``: ``holdout``, ``val_fraction``): (fit, selection slice) when the run held
+    frames out, else (training range, validation split)."""
+    holdout = float(recorded.get("holdout", 0.0) or 0.0)
+    val_fraction = float(recorded.get("val_fraction", 0.2))
+    return make_splits(dataset, root, cfg, val_fraction=val_fraction, holdout=holdout)

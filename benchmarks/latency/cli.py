@@ -67,6 +67,12 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     "distinct frames; OpenVINO looks faster so.",
 )
 @click.option(
+    "--stream-frames",
+    type=click.IntRange(min=0),
+    help="Whole frames on a stream: this many distinct frames, each once (other --data frames than "
+    "the rest of the run reads, else seeded scans; 0: skip) [30; quick 3].",
+)
+@click.option(
     "--against-old",
     is_flag=True,
     help="Random models: also time the same model as its graphs were before issue 23 (dense head, "
@@ -99,6 +105,7 @@ def latency_command(
     torch_compile: bool | None,
     peer_repeats: int | None,
     peers_on_one_frame: bool,
+    stream_frames: int | None,
     against_old: bool,
     data: Path | None,
     dataset: str | None,
@@ -131,6 +138,7 @@ def latency_command(
         "torch_compile": torch_compile,
         "peer_repeats": peer_repeats,
         "peer_stream": not peers_on_one_frame,
+        "stream_frames": stream_frames,
         "against_old": against_old,
         "data": data,
         "dataset": dataset,

@@ -5,6 +5,8 @@ first frame of ``--data``), after warm-up calls:
 
 - MSDNet per stage (voxelize + rulebooks, encoder, RGFD + adapter, DDIM loop, head, decode, total),
   medians and p90; the same for the R2LDM baseline on the same grid (Table IV with parameters);
+- MSDNet per stage on a stream (``--stream-frames`` distinct frames, each once: other ``--data``
+  frames than any other measurement reads, else seeded scans), as a sensor feeds it;
 - the bare step graph (IOBinding, nothing else), interleaved with the pipeline calls so both see
   the same load: the DDIM loop's share spent outside the step graph, and the step graph's FLOP
   rate against the measured numpy sgemm rate;
@@ -34,7 +36,7 @@ from msdnet.benchmarks.latency.models import KINDS, ModelPair, given_pair, prese
 from msdnet.benchmarks.latency.old_graphs import old_comparison
 from msdnet.benchmarks.latency.peers import peer_comparison
 from msdnet.benchmarks.latency.report import write_outputs
-from msdnet.benchmarks.latency.runs import msdnet_timings, sweep
+from msdnet.benchmarks.latency.runs import msdnet_timings, stream_timings, sweep
 from msdnet.benchmarks.latency.timing import (
     BareStep,
     StageRuns,
@@ -83,6 +85,7 @@ class LatencyConfig:
     torch_compile: bool = True  # include torch.compile among the peers (compiles for minutes)
     peer_repeats: int = 5  # interleaved repeats per engine and stage
     peer_stream: bool = True  # peers on a stream of distinct frames; False: one frame repeated (before 12-05)
+    stream_frames: int = 30  # whole frames on a stream: this many distinct frames, each once (0: not run)
     against_old: bool = False  # random models: time the old graphs in this run (latency/old_graphs.py)
 
     @property
@@ -94,7 +97,7 @@ def quick_config(out: Path, **kw: Any) -> LatencyConfig:
     """A run of a few seconds on the tiny preset (tests): few repetitions, short sweeps."""
     base: dict[str, Any] = {"preset": "tiny", "repeats": 3, "warmup": 1, "r2ldm_repeats": 1}
     base |= {"steps": (1, 50), "point_counts": (1000, 100000), "frames": 1}
-    base |= {"torch_compile": False, "peer_repeats": 2}
+    base |= {"torch_compile": False, "peer_repeats": 2, "stream_frames": 3}
     return LatencyConfig(out=out, **(base | kw))
 
 
@@ -160,6 +163,31 @@ def _stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list) -> li
         seeds = [cfg.seed + 7919 * (k + 1) for k in range(cfg.peer_repeats)]  # 7919: apart from the sweeps'
         rest = [synthetic_radar(pipe.columns, pipe.artifact.grid, n, s) for s in seeds]
     return [points, *rest]
+
+
+STREAM_SEED_STRIDE = 104729  # seeds of the whole-frame stream's scans: apart from the peers' and sweeps'
+
+
+def _frame_stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list) -> tuple[list, str]:
+    """(scans, description) of the whole-frame stream (``stream_timings``): ``cfg.stream_frames``
+    --data frames that no other measurement of the run reads, spread evenly and in order, else
+    seeded synthetic scans of the timing input's size; none when --data has no other frame."""
+    if cfg.stream_frames == 0:
+        return [], "not run (--stream-frames 0)"
+    if cfg.data is None:
+        n = len(points.points) if isinstance(points, PointCloud) else len(points)
+        seeds = [cfg.seed + STREAM_SEED_STRIDE * (k + 1) for k in range(cfg.stream_frames)]
+        scans = [synthetic_radar(pipe.columns, pipe.artifact.grid, n, s) for s in seeds]
+        return scans, f"{len(scans)} seeded synthetic scans of {n} points"
+    from msdnet.benchmarks.latency.quality import load_frames
+    from msdnet.runtime.io.datasets import open_dataset
+
+    used = {f[0] for f in frames}
+    ids = [i for i in open_dataset(str(cfg.dataset), cfg.data).frame_ids if i not in used]
+    if not ids:
+        return [], f"not run: --data has no frame besides the {len(used)} the other measurements read"
+    got = load_frames(cfg.data, str(cfg.dataset), cfg.stream_frames, pipe, frame_ids=ids)
+    return [f[1] for f in got], f"{len(got)} {cfg.dataset} frames {got[0][0]} to {got[-1][0]}, in order"
 
 
 def _notes(res: dict[str, Any]) -> list[str]:
@@ -266,6 +294,11 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
                 max(3, cfg.sweep_repeats),
                 cfg.seed,
             )
+        sensor, sensor_source = _frame_stream(cfg, msd, points, frames)
+        stream: dict[str, Any] = {"source": sensor_source}
+        if sensor:
+            log(f"timing MSDNet on a stream ({len(sensor)} frames, each once) ...")
+            stream |= stream_timings(msd, sensor, thr["msdnet"], cfg.seed)
         vox = voxelize_figures(grid, len(cols), msd.artifact.inputs.max_voxels, max(10, cfg.repeats))
         rss = peak_rss_mb(pair.msdnet.folder, msd.select_columns(points), cols, cfg.threads, thr["msdnet"])
         int8 = {}
@@ -309,9 +342,13 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         "decoded_points": {"msdnet": runs.decoded, "r2ldm": r2.decoded},
         "stages_ms": stages,
         "r2ldm_stages_ms": r2_stages,
+        "stream": stream,
         "params": {k: getattr(pair, k).params for k in KINDS},
         "ratios": {
             "msdnet_over_r2ldm": stages["total"]["median"] / r2_stages["total"]["median"],
+            "stream_over_repeated": (
+                stream["stages_ms"]["total"]["median"] / stages["total"]["median"] if sensor else float("nan")
+            ),
             "onnx_over_torch": torch_res.get("onnx_over_torch", float("nan")),
             "onnx_over_best_torch": torch_res.get("onnx_over_best_torch", float("nan")),
             "voxelize_numba_speedup": vox["speedup"],
@@ -320,6 +357,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "loop_overhead_share": main["loop_overhead_share"],
             "step_flops_over_peak": main["step_graph"]["flops_over_peak"],
             "head_over_dense_head": head.get("head_over_dense_head", float("nan")),
+            "head_over_dense_head_stream": stream.get("head_over_dense_head", float("nan")),
             "engine_over_best_peer": peers.get("engine_over_best_peer", float("nan")),
             "engine_over_best_f32_peer": peers.get("engine_over_best_f32_peer", float("nan")),
             "total_over_old_graphs": old.get("new_over_old", float("nan")),

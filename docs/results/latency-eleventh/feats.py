@@ -26,16 +26,13 @@ import numpy as np  # noqa: E402
 
 from msdnet.runtime.engine.pipeline import Pipeline  # noqa: E402
 from msdnet.training.checkpoint import load_checkpoint  # noqa: E402
-from msdnet.training.data import make_splits  # noqa: E402
+from msdnet.training.data import run_splits  # noqa: E402
 
 
 def slice_features(model: str, checkpoint: str, dataset: str, root: str) -> np.ndarray:
     """(frames, C, H8, W8) loop features of the checkpoint's selection slice through ``model``."""
     _, cfg, state = load_checkpoint(checkpoint)
-    holdout = float(state.dataset.get("holdout", 0.0) or 0.0)
-    _, select = make_splits(
-        dataset, root, cfg, float(state.dataset.get("val_fraction", 0.2)), holdout=holdout
-    )
+    _, select = run_splits(dataset, root, cfg, state.dataset)
     pipe = Pipeline.from_dir(model, threads=2)
     pipe.gate = None  # the dense head: the features do not depend on it
     final = pipe.coefficients().shape[0] % 2  # the loop's final ping-pong buffer
