@@ -102,8 +102,10 @@ def test_quick_run_times_whole_frames_on_a_stream(quick):
     assert s["frames"] == 3 and s["source"] == "3 seeded synthetic scans of 300 points"
     assert set(s["stages_ms"]) == set(STAGES) and all(v["n"] == 3 for v in s["stages_ms"].values())
     assert s["voxels_median"] > 0 and s["decoded_median"] > 0 and s["head_voxels_median"] > 0
-    assert res["models"]["msdnet"]["gate"] is not None and s["dense_head_ms"]["n"] == 3
-    want = s["stages_ms"]["recon_head"]["median"] / s["dense_head_ms"]["median"]
+    assert res["models"]["msdnet"]["gate"] is not None
+    heads = s["heads_ms"]
+    assert heads["dense"]["n"] == 3 and heads["coarse-to-fine"] == s["stages_ms"]["recon_head"]
+    want = s["stages_ms"]["recon_head"]["median"] / s["heads_ms"]["dense"]["median"]
     assert res["ratios"]["head_over_dense_head_stream"] == s["head_over_dense_head"] == want
     ratio = res["ratios"]["stream_over_repeated"]
     assert _finite(ratio) and ratio == s["stages_ms"]["total"]["median"] / res["stages_ms"]["total"]["median"]

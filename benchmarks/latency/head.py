@@ -45,6 +45,12 @@ def apart_at_threshold(a: Any, b: Any, threshold: float) -> int | None:
 def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: int = 0) -> str:
     """Set ``pipe.gate`` for the run (see the module docstring); -> a note saying how."""
     if pipe.artifact.gate is not None and weights != "random":
+        if pipe.auto is not None and pipe.auto.head is not None and pipe.auto.head.head == "dense":
+            pipe.gate = None
+            return (
+                f"dense head: provider auto found it faster here than the coarse-to-fine head at the "
+                f"manifest gate {pipe.artifact.gate:.4g}"
+            )
         pipe.gate = pipe.artifact.gate
         return f"manifest gate {pipe.gate:.4g}"
     if not pipe.sessions.get("recon_head_sparse.onnx"):
@@ -62,12 +68,13 @@ def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: i
 
 
 def head_comparison(
-    pipe: Pipeline, points: Scan, threshold: float, repeats: int, seed: int = 0
+    pipe: Pipeline, points: Scan, threshold: float, repeats: int, seed: int = 0, gate: float | None = None
 ) -> dict[str, Any]:
-    """Head stage of the coarse-to-fine head (``pipe.gate``) vs the dense head, alternating calls;
-    decoded points of each, and a check: with the keep-every-point gate of this input, the sparse
-    head decodes exactly the dense head's points."""
-    gate = pipe.gate
+    """Head stage of the coarse-to-fine head at ``gate`` (default ``pipe.gate``) vs the dense head,
+    alternating calls; decoded points of each, and a check: with the keep-every-point gate of this
+    input, the sparse head decodes exactly the dense head's points. ``pipe.gate`` is left as it was."""
+    runs_with = pipe.gate
+    gate = runs_with if gate is None else gate
     if gate is None:
         return {"note": "no gate: the pipeline runs the dense head"}
     sparse_s, dense_s = [], []
@@ -86,7 +93,7 @@ def head_comparison(
         pipe.gate = kag
         keep_all = pipe(points, threshold=threshold, seed=seed)
     finally:
-        pipe.gate = gate
+        pipe.gate = runs_with
     s, d = summary(sparse_s), summary(dense_s)
     return {
         "gate": gate,

@@ -226,10 +226,11 @@ def _stream_section(res: dict[str, Any]) -> list[str]:
         [[STAGE_LABELS[k], st[k]["median"], *[sm[k][q] for q in ("median", "p90", "min")]] for k in sm],
     )
     out += ["", f"Stream / repeated input, total: {_fmt(res['ratios'].get('stream_over_repeated'), 3)}."]
-    if "dense_head_ms" in s:
-        d = s["dense_head_ms"]
+    if "heads_ms" in s:
+        c, d = s["heads_ms"]["coarse-to-fine"], s["heads_ms"]["dense"]
         out[-1] += (
-            f" The dense head on the same frames (each run again without the gate): median "
+            f" Both heads on the same frames (each frame run again with the head the pipeline does not "
+            f"run): coarse-to-fine median {c['median']:.2f} ms (p90 {c['p90']:.2f}), dense "
             f"{d['median']:.2f} ms (p90 {d['p90']:.2f}); coarse-to-fine / dense head "
             f"{_fmt(s['head_over_dense_head'], 3)}."
         )

@@ -99,34 +99,44 @@ def sweep(
     return rows
 
 
-def stream_timings(pipe: Pipeline, scans: list[Any], thr: float, seed: int = 0) -> dict[str, Any]:
+def stream_timings(
+    pipe: Pipeline, scans: list[Any], thr: float, seed: int = 0, gate: float | None = None
+) -> dict[str, Any]:
     """Whole frames on a stream, as a sensor feeds them: each of ``scans`` once, in order, through
-    the warm pipeline. Every input is new to every session, which matters for OpenVINO: it prepares
-    kernels per input shape, and the main run's repeated input lets it reuse them
-    (``docs/results/latency-twelfth``). With a gate (the coarse-to-fine head), each frame is then
-    run again with the dense head, whose head time alone is kept (its shapes never change; the
-    second call's other stages have seen the frame). -> {"frames": len(scans), "stages_ms":
+    the warm pipeline as it is set (``pipe.gate``). Every input is new to every session, which
+    matters for OpenVINO: it prepares kernels per input shape, and the main run's repeated input
+    lets it reuse them (``docs/results/latency-twelfth``). With a coarse-to-fine ``gate`` (default
+    ``pipe.gate``), each frame is then run again with the other head, whose head time alone is kept
+    (the second call's other stages have seen the frame). -> {"frames": len(scans), "stages_ms":
     per-stage summaries, "decoded_median", "voxels_median", "head_voxels_median" (medians over the
-    frames), and with a gate "dense_head_ms" (summary) and "head_over_dense_head" (ratio of the
-    medians)}."""
-    runs, dense, per = StageRuns({}), [], {"decoded": [], "voxels": [], "head_voxels": []}
-    gate = pipe.gate
+    frames), and with a gate "heads_ms" ({"coarse-to-fine", "dense"}: head summaries) and
+    "head_over_dense_head" (ratio of their medians)}."""
+    runs, per = StageRuns({}), {"decoded": [], "voxels": [], "head_voxels": []}
+    runs_with = pipe.gate
+    gate = runs_with if gate is None else gate
+    other = gate if runs_with is None else None  # the head the pipeline does not run
+    heads: dict[str, list[float]] = {"coarse-to-fine": [], "dense": []}
     try:
         for scan in tqdm(scans, desc="MSDNet on a stream", unit="frame", disable=None):
-            pipe.gate = gate
+            pipe.gate = runs_with
             one = time_stages(pipe, scan, None, thr, 1, seed)
             runs.add(one)
             per["decoded"].append(one.decoded)
             per["voxels"].append(one.stats.get("voxels", 0))
             per["head_voxels"].append(one.stats.get("head_voxels", 0))
             if gate is not None:
-                pipe.gate = None
-                dense.append(time_stages(pipe, scan, None, thr, 1, seed).seconds["recon_head"][0])
+                pipe.gate = other
+                again = time_stages(pipe, scan, None, thr, 1, seed).seconds["recon_head"][0]
+                ran = one.seconds["recon_head"][0]
+                heads["coarse-to-fine"].append(ran if runs_with is not None else again)
+                heads["dense"].append(again if runs_with is not None else ran)
     finally:
-        pipe.gate = gate
+        pipe.gate = runs_with
     out: dict[str, Any] = {"frames": len(scans), "stages_ms": runs.summaries()}
     out |= {f"{k}_median": float(np.median(v)) for k, v in per.items()}
-    if dense:
-        d = out["dense_head_ms"] = summary(dense)
-        out["head_over_dense_head"] = out["stages_ms"]["recon_head"]["median"] / d["median"]
+    if gate is not None:
+        out["heads_ms"] = {k: summary(v) for k, v in heads.items()}
+        out["head_over_dense_head"] = (
+            out["heads_ms"]["coarse-to-fine"]["median"] / out["heads_ms"]["dense"]["median"]
+        )
     return out

@@ -273,7 +273,8 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
                 cfg.seed,
             )
         log("coarse-to-fine vs dense head ...")
-        head = head_comparison(msd, points, thr["msdnet"], max(5, cfg.sweep_repeats), cfg.seed)
+        c2f_gate = msd.gate if msd.gate is not None else msd.artifact.gate  # auto may run the dense head
+        head = head_comparison(msd, points, thr["msdnet"], max(5, cfg.sweep_repeats), cfg.seed, c2f_gate)
         peers: dict[str, Any] = {"note": "not run (--no-peers)"}
         if cfg.peers:
             log("peer engines per stage (OpenVINO, torch eager, torch.compile) ...")
@@ -298,7 +299,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         stream: dict[str, Any] = {"source": sensor_source}
         if sensor:
             log(f"timing MSDNet on a stream ({len(sensor)} frames, each once) ...")
-            stream |= stream_timings(msd, sensor, thr["msdnet"], cfg.seed)
+            stream |= stream_timings(msd, sensor, thr["msdnet"], cfg.seed, c2f_gate)
         vox = voxelize_figures(grid, len(cols), msd.artifact.inputs.max_voxels, max(10, cfg.repeats))
         rss = peak_rss_mb(pair.msdnet.folder, msd.select_columns(points), cols, cfg.threads, thr["msdnet"])
         int8 = {}

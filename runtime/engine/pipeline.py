@@ -107,10 +107,14 @@ class Pipeline:
         self.auto: AutoReport | None = None  # provider "auto": each graph's engine, its times and why
         if base_provider(provider) == AUTO:
             from msdnet.runtime.engine.provider_auto import choose_engines
+            from msdnet.runtime.engine.provider_head import choose_head
 
             # may swap sessions for OpenVINO's
             self.auto = choose_engines(self, threads_of, precision_of(provider))
+            self.auto = choose_head(self, self.auto, threads_of, precision_of(provider))
             self._allocate(device_of(provider))  # so bind the buffers again
+            if self.auto.head is not None and self.auto.head.head == "dense":
+                self.gate = None  # the dense reference is faster on these engines (provider_head)
 
     @classmethod
     def from_dir(cls, path: str | Path, provider: str = "cpu", threads: int | None = None) -> Pipeline:

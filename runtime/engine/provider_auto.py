@@ -24,6 +24,10 @@ ms a frame with the picks timed on one repeated input, 22.3 on onnxruntime alone
 - onnxruntime, with the reason, for a graph OpenVINO cannot load (``rgfd_adapter.onnx``: no
   DeformConv in its ONNX front end) or when OpenVINO is not installed.
 
+Then, when the manifest has a gate, ``provider_head`` picks the head graph: the dense head when it
+is faster on its engine than the coarse-to-fine head on its engine (its outputs are the reference
+the gated head approximates).
+
 ``auto-bf16`` is the same contest with OpenVINO compiling in bfloat16 (engine ``openvino-bf16``):
 its outputs are held to the looser ``BF16_*`` tolerances (bf16 keeps about 3 significant digits),
 and what that costs in CD and F-score is measured end to end by ``msdnet-bench steps``.
@@ -107,15 +111,20 @@ class AutoReport:
     picks: dict[str, EnginePick]  # graph file -> pick, in pipeline order
     cache: Path  # the cache file
     cache_note: str  # "read", "written" or why it was not written
+    head: Any = None  # provider_head.HeadPick: the coarse-to-fine or the dense head; None: no contest
 
     def lines(self) -> list[str]:
-        return [f"provider auto: {p.line()}" for p in self.picks.values()] + [
-            f"provider auto: cache {self.cache} ({self.cache_note})"
-        ]
+        head = [] if self.head is None else [f"provider auto: {self.head.line()}"]
+        return (
+            [f"provider auto: {p.line()}" for p in self.picks.values()]
+            + head
+            + [f"provider auto: cache {self.cache} ({self.cache_note})"]
+        )
 
     def to_json(self) -> dict[str, Any]:
         return {
             "picks": {f: p.to_json() for f, p in self.picks.items()},
+            "head": None if self.head is None else self.head.to_json(),
             "cache": cache_shown(self.cache),
             "cache_note": self.cache_note,
         }
@@ -296,15 +305,16 @@ class StreamInputs:
     outputs: list[dict[str, list[list[np.ndarray]]]]  # per scan: graph file -> onnxruntime's outputs
 
 
-def stream_inputs(pipe: Pipeline, threads: int | None) -> StreamInputs:
-    """The scans of the module docstring (``STREAM_SCANS``, seeds 0, 1, ...: the first is
-    :func:`graph_inputs`'s default, the others of ``SCAN_POINTS`` x 0.5 to 1.5 points), run on
-    throwaway onnxruntime sessions so that the pipeline's own have seen none of them."""
+def stream_inputs(pipe: Pipeline, threads: int | None, first_seed: int = 0) -> StreamInputs:
+    """The scans of the module docstring (``STREAM_SCANS``, seeds ``first_seed``, +1, ...: seed 0
+    is :func:`graph_inputs`'s default; the first of ``SCAN_POINTS``, the others of ``SCAN_POINTS``
+    x 0.5 to 1.5 points), run on throwaway onnxruntime sessions so that the pipeline's own have
+    seen none of them."""
     fresh = fresh_sessions(pipe, threads)
     rest = np.linspace(SCAN_POINTS // 2, 3 * SCAN_POINTS // 2, STREAM_SCANS - 1).round().astype(int)
-    counts = [SCAN_POINTS, *np.random.default_rng(0).permutation(rest)]  # sizes in no order
+    counts = [SCAN_POINTS, *np.random.default_rng(first_seed).permutation(rest)]  # sizes in no order
     steps = _loop_steps(pipe)
-    feeds = [frame_calls(pipe, k, int(n), fresh, steps) for k, n in enumerate(counts)]
+    feeds = [frame_calls(pipe, first_seed + k, int(n), fresh, steps) for k, n in enumerate(counts)]
     outputs = [{f: [fresh[f].run(None, c) for c in cs] for f, cs in scan.items()} for scan in feeds]
     pipe.coefficients()  # a sampler keeps the last plan's re-noising: the manifest's again
     return StreamInputs(feeds, outputs)
@@ -365,30 +375,36 @@ class _Bound:
 WARMUP_CALLS = 2  # untimed runs of the first scan: a session's first call allocates its arena
 
 
+Calls = list[dict[str, np.ndarray]]  # one scan's calls of one graph, in order: input name -> array
+
+
 def time_engines(
     sessions: dict[str, Any],
-    scans: list[list[dict[str, np.ndarray]]],
-    refs: list[list[list[np.ndarray]]],
+    scans: list[Calls] | dict[str, list[Calls]],
+    refs: list[list[list[np.ndarray]]] | dict[str, list[list[list[np.ndarray]]]],
 ) -> dict[str, np.ndarray]:
     """ms each engine takes for each scan's calls but the first scan's, over a stream: ``scans[0]``
     untimed (``WARMUP_CALLS`` times), then every other scan once per engine, its calls back to
     back as the pipeline makes them (the step graph: one a loop step), engines interleaved, order
-    rotated per scan."""
-    binds = {e: _Bound.of(s, refs[0][0]) for e, s in sessions.items()}
+    rotated per scan. ``scans`` and ``refs`` (each call's outputs, for binding them): one list for
+    every session, or one per session (sessions of different graphs, ``provider_head``)."""
     names = list(sessions)
+    feeds = scans if isinstance(scans, dict) else dict.fromkeys(names, scans)
+    outs = refs if isinstance(refs, dict) else dict.fromkeys(names, refs)
+    binds = {e: _Bound.of(s, outs[e][0][0]) for e, s in sessions.items()}
 
-    def run(e: str, calls: list[dict[str, np.ndarray]]) -> None:
+    def run(e: str, calls: Calls) -> None:
         for feed in calls:
             sessions[e].run_with_iobinding(binds[e].feed(feed))
 
     for e in names:
         for _ in range(WARMUP_CALLS):
-            run(e, scans[0])
+            run(e, feeds[e][0])
     samples: dict[str, list[float]] = {e: [] for e in names}
-    for k in range(1, len(scans)):
+    for k in range(1, len(feeds[names[0]])):
         for e in names[k % len(names) :] + names[: k % len(names)]:
             t0 = time.perf_counter()
-            run(e, scans[k])
+            run(e, feeds[e][k])
             samples[e].append(time.perf_counter() - t0)
     return {e: np.asarray(v) * 1e3 for e, v in samples.items()}
 

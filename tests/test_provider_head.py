@@ -1,0 +1,105 @@
+"""``--provider auto``'s head pick: the dense head where it is faster on its engine than the
+coarse-to-fine head on its engine, timed on a stream of scans new to both, and cached."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from export_helpers import make_artifact
+
+from msdnet.export.manifest import write_manifest
+from msdnet.runtime.engine import provider_auto, provider_head
+from msdnet.runtime.engine.pipeline import Pipeline
+
+pytest.importorskip("openvino")
+
+
+@pytest.fixture(scope="module")
+def gated(tmp_path_factory):
+    """A tiny student whose manifest has a gate, so the pipeline runs the coarse-to-fine head."""
+    folder = tmp_path_factory.mktemp("head") / "gated"
+    shutil.copytree(make_artifact(tmp_path_factory.mktemp("art"), "student", head_kind="gated"), folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    write_manifest(folder, {**manifest, "gate": 0.48})
+    return folder
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setattr(provider_auto, "_MEMO", {})
+    return tmp_path / "xdg" / "msdnet" / "providers.json"
+
+
+def _scan(pipe: Pipeline) -> np.ndarray:
+    return provider_auto.seeded_scan(pipe, np.random.default_rng(9), 300)
+
+
+def _faster(monkeypatch, head: str) -> list:
+    """Make ``head`` time at half the other's in the head contest; -> the feeds it was timed on."""
+    real, seen = provider_auto.time_engines, []
+
+    def timing(sessions, feeds, refs):
+        if set(sessions) != set(provider_head.FILES):
+            return real(sessions, feeds, refs)
+        seen.append(feeds)
+        n = len(next(iter(feeds.values()))) - 1
+        return {h: np.full(n, 1.0 if h == head else 2.0) for h in sessions}
+
+    monkeypatch.setattr(provider_auto, "time_engines", timing)
+    return seen
+
+
+def test_the_dense_head_runs_where_it_is_faster(gated, cache, monkeypatch):
+    seen = _faster(monkeypatch, provider_head.DENSE)
+    pipe = Pipeline.from_dir(gated, "auto", threads=1)
+    pick = pipe.auto.head
+    assert pick.head == "dense" and pick.ratio == 0.5 and not pick.cached and pipe.gate is None
+    assert "head: dense" in "\n".join(pipe.auto.lines()) and pipe.auto.to_json()["head"]["head"] == "dense"
+    # the heads' stream: new scans, not the engine picks' (which warmed OpenVINO's sessions)
+    feeds = seen[0]
+    assert len(feeds["dense"]) == provider_auto.STREAM_SCANS
+    picks_first = provider_auto.graph_inputs(pipe)[provider_head.FILES["dense"]]["features"]
+    assert not any(np.array_equal(calls[0]["features"], picks_first) for calls in feeds["dense"])
+    # the dense head decodes every half-scale voxel; the gated one those past the gate
+    again = Pipeline.from_dir(gated, "auto", threads=1)  # the same process: the pick kept
+    assert again.auto.head.cached and again.gate is None
+    dense, gated_run = pipe(_scan(pipe)), Pipeline.from_dir(gated, "cpu", threads=1)(_scan(pipe))
+    assert dense.stats["head_voxels"] == int(np.prod(pipe._occ[0, 0].shape)) > gated_run.stats["head_voxels"]
+
+
+def test_the_coarse_to_fine_head_stays_where_it_is_faster(gated, cache, monkeypatch):
+    _faster(monkeypatch, provider_head.COARSE_TO_FINE)
+    pipe = Pipeline.from_dir(gated, "auto", threads=1)
+    assert pipe.auto.head.head == "coarse-to-fine" and pipe.gate == 0.48
+    assert "the dense head must be 3% faster" in pipe.auto.head.reason
+
+
+def test_the_pick_is_measured_once_and_keyed_by_both_heads_engines(gated, cache, monkeypatch):
+    pipe = Pipeline.from_dir(gated, "auto", threads=1)  # really timed
+    pick = pipe.auto.head
+    assert set(pick.ms) == {"dense", "coarse-to-fine"} and min(pick.ms.values()) > 0
+    assert pick.head == ("dense" if pick.ratio <= 1 - provider_auto.MARGIN else "coarse-to-fine")
+    assert (pipe.gate is None) == (pick.head == "dense")
+    keys = [k for k in json.loads(cache.read_text())["entries"] if k.split(" | ")[1].startswith("head:")]
+    engines = {f: pipe.auto.picks[f].engine for f in provider_head.FILES.values()}
+    assert len(keys) == 1 and all(f"on {e}" in keys[0] for e in engines.values())
+
+    def no_timing(*a, **k):
+        raise AssertionError("measured again")
+
+    monkeypatch.setattr(provider_auto, "time_engines", no_timing)
+    monkeypatch.setattr(provider_auto, "_MEMO", {})  # a new process: only the file is left
+    again = Pipeline.from_dir(gated, "auto", threads=1)
+    assert again.auto.head.cached and again.auto.head.head == pick.head and again.gate == pipe.gate
+
+
+def test_no_contest_without_a_gate_or_without_openvino(gated, cache, monkeypatch):
+    plain = Pipeline.from_dir(make_artifact(gated.parent, "student"), "auto", threads=1)
+    assert plain.artifact.gate is None and plain.auto.head is None
+    monkeypatch.setattr(provider_auto, "openvino_version", lambda: None)
+    cpu_like = Pipeline.from_dir(gated, "auto", threads=1)
+    assert cpu_like.auto.head is None and cpu_like.gate == 0.48
