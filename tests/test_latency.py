@@ -226,8 +226,15 @@ def test_quick_run_times_the_sparse_head_and_the_peers(quick):
     assert 0 < h["head_voxels"] < h["half_voxels"] and _finite(res["ratios"]["head_over_dense_head"])
     assert res["models"]["msdnet"]["gate"] == h["gate"] > 0 and res["models"]["r2ldm"]["gate"] is None
     p = res["peers"]
-    assert set(p["stages"]) == {"encoder", "rgfd_adapter", "ddim_loop", "recon_head"}
+    assert set(p["stages"]) == {"encoder", "rgfd_adapter", "ddim_loop", "recon_head", "recon_head_other"}
     assert p["stages"]["recon_head"]["graph"] == "recon_head_sparse.onnx"
+    assert p["stages"]["recon_head_other"]["graph"] == "recon_head.onnx"  # a peer may find it faster
+    heads = [p["stages"][s]["torch_eager"]["median"] for s in ("recon_head", "recon_head_other")]
+    rest = sum(p["stages"][s]["torch_eager"]["median"] for s in ("encoder", "rgfd_adapter", "ddim_loop"))
+    assert p["totals"]["torch_eager"]["median_ms"] == pytest.approx(rest + min(heads))
+    ours = sum(p["stages"][s]["onnxruntime"]["median"] for s in ("encoder", "rgfd_adapter", "ddim_loop"))
+    ours += p["stages"]["recon_head"]["onnxruntime"]["median"]  # ours: the head it runs
+    assert p["totals"]["onnxruntime"]["median_ms"] == pytest.approx(ours)
     for row in p["stages"].values():
         assert _finite(row["onnxruntime"]["median"]) and _finite(row["torch_eager"]["median"])
         assert row["failed"]["torch_compile"] == "not run (--no-torch-compile)"  # quick: off
@@ -239,6 +246,7 @@ def test_quick_run_times_the_sparse_head_and_the_peers(quick):
     assert p["input"] == "a stream: 2 distinct frames timed, each engine seeing each once"
     md = (out / "results.md").read_text(encoding="utf-8")
     assert "Peer engines per stage" in md and "Coarse-to-fine head vs the dense head" in md
+    assert "| head ours does not run (recon_head.onnx) |" in md and "faster of its two head graphs" in md
 
 
 def test_peers_run_a_stream_and_ours_on_openvino_is_that_peer(tmp_path):

@@ -6,6 +6,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+OTHER_HEAD = "recon_head_other"  # peers' stage: the head graph ours does not run (peers.peer_specs)
+
 ENGINE_LABELS = {
     "onnxruntime": "onnxruntime (ours)",
     "openvino": "OpenVINO",
@@ -161,17 +163,15 @@ def peers_section(res: dict[str, Any]) -> list[str]:
         "| stage | " + " | ".join(labels[e] for e in engines) + " | ours / best peer |",
         "|---|" + "---:|" * (len(engines) + 1),
     ]
+    names = {**STAGE_NAMES, OTHER_HEAD: "head ours does not run"}
     for stage, row in p["stages"].items():
         cells = [_fmt(row[e]["median"]) if e in row else "–" for e in engines]
         if row.get("ours_is") and cells:
             cells[0] += "†"
         ratio = row.get("engine_over_best_peer")
         best = ENGINE_LABELS.get(row.get("best_peer", ""), "")
-        out.append(
-            f"| {STAGE_NAMES.get(stage, stage)} ({row['graph']}) | "
-            + " | ".join(cells)
-            + f" | {_fmt(ratio, 3)} ({best}) |"
-        )
+        last = f"{_fmt(ratio, 3)} ({best})" if stage != OTHER_HEAD else "–"
+        out.append(f"| {names.get(stage, stage)} ({row['graph']}) | " + " | ".join(cells) + f" | {last} |")
     cells = [
         _fmt(p["totals"][e]["median_ms"]) + ("*" if p["totals"][e]["substituted"] else "") for e in engines
     ]
@@ -186,6 +186,12 @@ def peers_section(res: dict[str, Any]) -> list[str]:
             f"{ENGINE_LABELS.get(p['best_f32_peer'], p['best_f32_peer'])} "
             f"**{_fmt(p['engine_over_best_f32_peer'], 3)}**.",
         ]
+    if OTHER_HEAD in p["stages"]:
+        out += [
+            "",
+            "A peer's total and head ratio count the faster of its two head graphs (a user of that "
+            "engine would run that one); ours counts the head it runs.",
+        ]
     shared = sorted({ENGINE_LABELS[r["ours_is"]] for r in p["stages"].values() if r.get("ours_is")})
     if shared:
         out += [
@@ -196,7 +202,7 @@ def peers_section(res: dict[str, Any]) -> list[str]:
     out += ["", "\\* onnxruntime's time stands in for the stages that engine could not run:"]
     for stage, row in p["stages"].items():
         for engine, why in row["failed"].items():
-            out.append(f"- {ENGINE_LABELS[engine]}, {STAGE_NAMES.get(stage, stage)}: {why}")
+            out.append(f"- {ENGINE_LABELS[engine]}, {names.get(stage, stage)}: {why}")
     return out
 
 
