@@ -1,4 +1,5 @@
-"""Shared fixtures: where the real research data lives (read in place, never copied)."""
+"""Shared fixtures: where the real research data lives (read in place, never copied), and a fresh
+``--provider auto`` cache."""
 
 from __future__ import annotations
 
@@ -32,3 +33,13 @@ def astyx_root() -> Path:
     if not ASTYX_ROOT.is_dir():
         pytest.skip(f"real Astyx data not found at {ASTYX_ROOT}")
     return ASTYX_ROOT
+
+
+@pytest.fixture
+def auto_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """``--provider auto``'s cache file, fresh under XDG_CACHE_HOME, and no picks kept in memory."""
+    from msdnet.runtime.engine import provider_auto
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setattr(provider_auto, "_MEMO", {})
+    return tmp_path / "xdg" / "msdnet" / "providers.json"

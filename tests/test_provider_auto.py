@@ -29,11 +29,8 @@ def folder(tmp_path_factory):
 
 
 @pytest.fixture
-def cache(tmp_path, monkeypatch):
-    """A fresh cache under XDG_CACHE_HOME and no picks kept in memory."""
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    monkeypatch.setattr(provider_auto, "_MEMO", {})
-    return tmp_path / "xdg" / "msdnet" / "providers.json"
+def cache(auto_cache):
+    return auto_cache  # conftest's: a fresh cache under XDG_CACHE_HOME, no picks kept in memory
 
 
 def _scan(pipe: Pipeline) -> np.ndarray:

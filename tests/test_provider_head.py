@@ -27,13 +27,6 @@ def gated(tmp_path_factory):
     return folder
 
 
-@pytest.fixture
-def cache(tmp_path, monkeypatch):
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    monkeypatch.setattr(provider_auto, "_MEMO", {})
-    return tmp_path / "xdg" / "msdnet" / "providers.json"
-
-
 def _scan(pipe: Pipeline) -> np.ndarray:
     return provider_auto.seeded_scan(pipe, np.random.default_rng(9), 300)
 
@@ -53,7 +46,7 @@ def _faster(monkeypatch, head: str) -> list:
     return seen
 
 
-def test_the_dense_head_runs_where_it_is_faster(gated, cache, monkeypatch):
+def test_the_dense_head_runs_where_it_is_faster(gated, auto_cache, monkeypatch):
     seen = _faster(monkeypatch, provider_head.DENSE)
     pipe = Pipeline.from_dir(gated, "auto", threads=1)
     pick = pipe.auto.head
@@ -71,20 +64,20 @@ def test_the_dense_head_runs_where_it_is_faster(gated, cache, monkeypatch):
     assert dense.stats["head_voxels"] == int(np.prod(pipe._occ[0, 0].shape)) > gated_run.stats["head_voxels"]
 
 
-def test_the_coarse_to_fine_head_stays_where_it_is_faster(gated, cache, monkeypatch):
+def test_the_coarse_to_fine_head_stays_where_it_is_faster(gated, auto_cache, monkeypatch):
     _faster(monkeypatch, provider_head.COARSE_TO_FINE)
     pipe = Pipeline.from_dir(gated, "auto", threads=1)
     assert pipe.auto.head.head == "coarse-to-fine" and pipe.gate == 0.48
     assert "the dense head must be 3% faster" in pipe.auto.head.reason
 
 
-def test_the_pick_is_measured_once_and_keyed_by_both_heads_engines(gated, cache, monkeypatch):
+def test_the_pick_is_measured_once_and_keyed_by_both_heads_engines(gated, auto_cache, monkeypatch):
     pipe = Pipeline.from_dir(gated, "auto", threads=1)  # really timed
     pick = pipe.auto.head
     assert set(pick.ms) == {"dense", "coarse-to-fine"} and min(pick.ms.values()) > 0
     assert pick.head == ("dense" if pick.ratio <= 1 - provider_auto.MARGIN else "coarse-to-fine")
     assert (pipe.gate is None) == (pick.head == "dense")
-    keys = [k for k in json.loads(cache.read_text())["entries"] if k.split(" | ")[1].startswith("head:")]
+    keys = [k for k in json.loads(auto_cache.read_text())["entries"] if k.split(" | ")[1].startswith("head:")]
     engines = {f: pipe.auto.picks[f].engine for f in provider_head.FILES.values()}
     assert len(keys) == 1 and all(f"on {e}" in keys[0] for e in engines.values())
 
@@ -97,7 +90,7 @@ def test_the_pick_is_measured_once_and_keyed_by_both_heads_engines(gated, cache,
     assert again.auto.head.cached and again.auto.head.head == pick.head and again.gate == pipe.gate
 
 
-def test_no_contest_without_a_gate_or_without_openvino(gated, cache, monkeypatch):
+def test_no_contest_without_a_gate_or_without_openvino(gated, auto_cache, monkeypatch):
     plain = Pipeline.from_dir(make_artifact(gated.parent, "student"), "auto", threads=1)
     assert plain.artifact.gate is None and plain.auto.head is None
     monkeypatch.setattr(provider_auto, "openvino_version", lambda: None)
