@@ -54,9 +54,8 @@ class HeadPick:
         return f"head: {self.head} ({times + '; ' if times else ''}{self.reason}; {source})"
 
     def to_json(self) -> dict[str, Any]:
-        return {"head": self.head, "ms": dict(self.ms), "ratio": self.ratio, "reason": self.reason} | {
-            "cached": self.cached
-        }
+        out = {"head": self.head, "ms": dict(self.ms), "ratio": self.ratio}
+        return out | {"reason": self.reason, "cached": self.cached}
 
 
 def head_key(pipe: Pipeline, picks: dict[str, EnginePick], threads: int | None, precision: str) -> str:
