@@ -45,7 +45,7 @@ def apart_at_threshold(a: Any, b: Any, threshold: float) -> int | None:
 def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: int = 0) -> str:
     """Set ``pipe.gate`` for the run (see the module docstring); -> a note saying how."""
     if pipe.artifact.gate is not None and weights != "random":
-        if pipe.auto is not None and pipe.auto.head is not None and pipe.auto.head.head == "dense":
+        if pipe.auto is not None and pipe.auto.dense_head:
             pipe.gate = None
             return (
                 f"dense head: provider auto found it faster here than the coarse-to-fine head at the "
@@ -65,6 +65,12 @@ def choose_gate(pipe: Pipeline, points: Scan, weights: str, target: int, seed: i
         f"random weights: gate {pipe.gate:.4g}, keeping {keep} of {len(occ)} half-scale voxels "
         f"(>= {RANDOM_VOXEL_SHARE:.0%}, >= a quarter of the target points)"
     )
+
+
+def coarse_to_fine_gate(pipe: Pipeline) -> float | None:
+    """The gate the coarse-to-fine head runs with: ``pipe.gate``, else the manifest's (``--provider
+    auto`` may run the dense head); None when there is none."""
+    return pipe.gate if pipe.gate is not None else pipe.artifact.gate
 
 
 def head_comparison(

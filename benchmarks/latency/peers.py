@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from msdnet.benchmarks.latency.head import coarse_to_fine_gate
 from msdnet.benchmarks.latency.peer_report import OTHER_HEAD  # the head graph ours does not run
 from msdnet.benchmarks.latency.timing import Scan
 from msdnet.runtime.engine.pipeline import Pipeline
@@ -70,7 +71,7 @@ def stage_specs(pipe: Pipeline) -> dict[str, onnx_spec.GraphSpec]:
 def other_head(pipe: Pipeline) -> tuple[onnx_spec.GraphSpec, float] | None:
     """The head graph the pipeline does not run and the coarse-to-fine gate, when it has both heads
     and a gate (``pipe.gate``, else the manifest's: ``--provider auto`` may run the dense head)."""
-    gate = pipe.gate if pipe.gate is not None else pipe.artifact.gate
+    gate = coarse_to_fine_gate(pipe)
     files = (onnx_spec.RECON_HEAD.file, onnx_spec.RECON_HEAD_SPARSE.file)
     if pipe.kind != "student" or gate is None or not all(f in pipe.sessions for f in files):
         return None

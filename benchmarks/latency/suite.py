@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from msdnet.benchmarks.latency.compare import int8_comparison, torch_comparison
-from msdnet.benchmarks.latency.head import choose_gate, head_comparison
+from msdnet.benchmarks.latency.head import choose_gate, coarse_to_fine_gate, head_comparison
 from msdnet.benchmarks.latency.models import KINDS, ModelPair, given_pair, preset_config, random_pair
 from msdnet.benchmarks.latency.old_graphs import old_comparison
 from msdnet.benchmarks.latency.peers import peer_comparison
@@ -159,10 +159,17 @@ def _stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list) -> li
     --data frames, else seeded synthetic scans of the same size (one more than the repeats)."""
     rest = [f[1] for f in frames[1:]]
     if not rest:
-        n = len(points.points) if isinstance(points, PointCloud) else len(points)
-        seeds = [cfg.seed + 7919 * (k + 1) for k in range(cfg.peer_repeats)]  # 7919: apart from the sweeps'
-        rest = [synthetic_radar(pipe.columns, pipe.artifact.grid, n, s) for s in seeds]
+        rest = _seeded_scans(cfg, pipe, points, cfg.peer_repeats, 7919)  # 7919: apart from the sweeps'
     return [points, *rest]
+
+
+def _seeded_scans(cfg: LatencyConfig, pipe: Pipeline, points: Any, count: int, stride: int) -> list:
+    """``count`` synthetic scans of the timing input's size, seeds ``cfg.seed + stride * (k + 1)``."""
+    n = len(points.points) if isinstance(points, PointCloud) else len(points)
+    return [
+        synthetic_radar(pipe.columns, pipe.artifact.grid, n, cfg.seed + stride * (k + 1))
+        for k in range(count)
+    ]
 
 
 STREAM_SEED_STRIDE = 104729  # seeds of the whole-frame stream's scans: apart from the peers' and sweeps'
@@ -175,10 +182,8 @@ def _frame_stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list)
     if cfg.stream_frames == 0:
         return [], "not run (--stream-frames 0)"
     if cfg.data is None:
-        n = len(points.points) if isinstance(points, PointCloud) else len(points)
-        seeds = [cfg.seed + STREAM_SEED_STRIDE * (k + 1) for k in range(cfg.stream_frames)]
-        scans = [synthetic_radar(pipe.columns, pipe.artifact.grid, n, s) for s in seeds]
-        return scans, f"{len(scans)} seeded synthetic scans of {n} points"
+        scans = _seeded_scans(cfg, pipe, points, cfg.stream_frames, STREAM_SEED_STRIDE)
+        return scans, f"{len(scans)} seeded synthetic scans of {len(scans[0])} points"
     from msdnet.benchmarks.latency.quality import load_frames
     from msdnet.runtime.io.datasets import open_dataset
 
@@ -273,7 +278,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
                 cfg.seed,
             )
         log("coarse-to-fine vs dense head ...")
-        c2f_gate = msd.gate if msd.gate is not None else msd.artifact.gate  # auto may run the dense head
+        c2f_gate = coarse_to_fine_gate(msd)
         head = head_comparison(msd, points, thr["msdnet"], max(5, cfg.sweep_repeats), cfg.seed, c2f_gate)
         peers: dict[str, Any] = {"note": "not run (--no-peers)"}
         if cfg.peers:

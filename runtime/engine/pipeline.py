@@ -113,7 +113,7 @@ class Pipeline:
             self.auto = choose_engines(self, threads_of, precision_of(provider))
             self.auto = choose_head(self, self.auto, threads_of, precision_of(provider))
             self._allocate(device_of(provider))  # so bind the buffers again
-            if self.auto.head is not None and self.auto.head.head == "dense":
+            if self.auto.dense_head:
                 self.gate = None  # the dense reference is faster on these engines (provider_head)
 
     @classmethod

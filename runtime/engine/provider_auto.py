@@ -113,6 +113,11 @@ class AutoReport:
     cache_note: str  # "read", "written" or why it was not written
     head: Any = None  # provider_head.HeadPick: the coarse-to-fine or the dense head; None: no contest
 
+    @property
+    def dense_head(self) -> bool:
+        """The head pick is the dense head: the pipeline runs it with no gate."""
+        return self.head is not None and self.head.head == "dense"
+
     def lines(self) -> list[str]:
         head = [] if self.head is None else [f"provider auto: {self.head.line()}"]
         return (
@@ -451,6 +456,13 @@ def disagreement(
     return None
 
 
+def paired(calls: dict[str, np.ndarray], over: str, under: str) -> tuple[dict[str, float], float]:
+    """(median ms a scan by engine, median over the scans of ``over``'s time / ``under``'s) of
+    :func:`time_engines`' samples: paired by scan, because the scans differ in size and both ran
+    each one back to back."""
+    return {e: float(np.median(v)) for e, v in calls.items()}, float(np.median(calls[over] / calls[under]))
+
+
 def _measure(pipe: Pipeline, file: str, ov: Any, stream: StreamInputs) -> dict[str, Any]:
     feeds = [scan[file] for scan in stream.feeds]  # per scan: the graph's calls
     refs = [scan[file] for scan in stream.outputs]
@@ -458,18 +470,16 @@ def _measure(pipe: Pipeline, file: str, ov: Any, stream: StreamInputs) -> dict[s
     got = [np.asarray(a) for a in ov.run(None, feeds[0][0])]
     why = disagreement(got, refs[0][0], names, ov.precision)
     rival = OPENVINO if ov.precision == "f32" else OPENVINO_BF16
-    calls = time_engines({ONNXRUNTIME: pipe.sessions[file], rival: ov}, feeds, refs)
-    ms = {e: float(np.median(v)) for e, v in calls.items()}
-    # paired by scan: the scans differ in size, the engines ran each one back to back
-    paired = float(np.median(calls[rival] / calls[ONNXRUNTIME]))
-    faster = paired <= 1.0 - MARGIN
+    ms, ratio = paired(
+        time_engines({ONNXRUNTIME: pipe.sessions[file], rival: ov}, feeds, refs), rival, ONNXRUNTIME
+    )
     if why is not None:
-        return {"engine": ONNXRUNTIME, "ms": ms, "ratio": paired, "reason": why}
-    line = f"{rival} / onnxruntime {paired:.2f} (median over {len(feeds) - 1} scans)"
-    if faster:
-        return {"engine": rival, "ms": ms, "ratio": paired, "reason": line}
+        return {"engine": ONNXRUNTIME, "ms": ms, "ratio": ratio, "reason": why}
+    line = f"{rival} / onnxruntime {ratio:.2f} (median over {len(feeds) - 1} scans)"
+    if ratio <= 1.0 - MARGIN:
+        return {"engine": rival, "ms": ms, "ratio": ratio, "reason": line}
     line += f" (OpenVINO must be {MARGIN:.0%} faster)"
-    return {"engine": ONNXRUNTIME, "ms": ms, "ratio": paired, "reason": line}
+    return {"engine": ONNXRUNTIME, "ms": ms, "ratio": ratio, "reason": line}
 
 
 def _stays(reason: str) -> dict[str, Any]:

@@ -25,8 +25,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-import numpy as np
-
 from msdnet.runtime.engine import provider_auto
 from msdnet.runtime.engine.provider_auto import MARGIN, EnginePick, cache_key
 from msdnet.runtime.model import onnx_spec
@@ -72,8 +70,7 @@ def measure_heads(pipe: Pipeline, threads: int | None) -> dict[str, Any]:
     feeds = {h: [scan[f] for scan in stream.feeds] for h, f in FILES.items()}
     refs = {h: [scan[f] for scan in stream.outputs] for h, f in FILES.items()}
     calls = provider_auto.time_engines(sessions, feeds, refs)  # ms a scan, (STREAM_SCANS - 1,) per head
-    ms = {h: float(np.median(v)) for h, v in calls.items()}
-    ratio = float(np.median(calls[DENSE] / calls[COARSE_TO_FINE]))  # paired by scan
+    ms, ratio = provider_auto.paired(calls, DENSE, COARSE_TO_FINE)
     line = f"dense / coarse-to-fine {ratio:.2f} (median over {len(stream.feeds) - 1} scans)"
     if ratio <= 1.0 - MARGIN:
         return {"head": DENSE, "ms": ms, "ratio": ratio, "reason": f"{line}: the reference, no gate"}
