@@ -1,4 +1,5 @@
-"""``msdnet-bench``: voxelize, quality, odometry, place, latency, steps, stages, conditioning, soak."""
+"""``msdnet-bench``: voxelize, quality, odometry, place, latency, encoders, params, steps, stages,
+conditioning, soak, live, fuzz."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ from msdnet.benchmarks.conditioning import conditioning_command
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
 from msdnet.benchmarks.fuzz import fuzz_command
 from msdnet.benchmarks.latency.cli import latency_command
+from msdnet.benchmarks.latency.encoder_forms import encoders_command
 from msdnet.benchmarks.latency.steps import steps_command
 from msdnet.benchmarks.live import live_command
+from msdnet.benchmarks.params import params_command
 from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
@@ -25,6 +28,8 @@ main.add_command(quality_command)
 main.add_command(odometry_command)
 main.add_command(place_command)
 main.add_command(latency_command)
+main.add_command(encoders_command)  # the encoder in its two forms (benchmarks/latency/encoder_forms.py)
+main.add_command(params_command)  # the papers' size table beside the latency one (benchmarks/params.py)
 main.add_command(steps_command)  # Table III: the T_m sweep on a dataset split (benchmarks/latency/steps.py)
 main.add_command(stages_command)
 main.add_command(conditioning_command)

@@ -10,8 +10,7 @@ On frames of a split (validation by default; never used for training or selectio
   shuffled, mean over t).
 - **Samples** from the same x_T with the own and the shuffled condition (``cfg.r2ldm_sample_steps``
   DDIM steps, the step graph's x0 clip): their latent std against the teacher latent's, their
-  distance to the teacher latent, and how far the two samples lie apart relative to their size
-  (the 2026-11 model: 0.4 %).
+  distance to the teacher latent, and how far the two samples lie apart relative to their size.
 
 Randomness (t, eps, x_T) comes from ``numpy.random.default_rng(seed)``.
 """
@@ -26,6 +25,7 @@ import numpy as np
 
 from msdnet.benchmarks.stages import T_BUCKETS, frame_batches, split_frames, write_markdown_and_json
 from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 
 EPS_NAMES = ("own", "shuffled", "zero", "linear")  # eps-MSE columns (module docstring)
 
@@ -47,8 +47,8 @@ def conditioning_report(
 
     from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.errors import MsdnetError
-    from msdnet.training.checkpoint import load_checkpoint
     from msdnet.training.nn.denoiser import ddim_loop
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -191,6 +191,7 @@ def write_report(doc: dict[str, Any], out: Path) -> None:
     "--out", required=True, type=click.Path(path_type=Path), help="Folder for conditioning.json/.md."
 )
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def conditioning_command(checkpoint: Path, out: Path, **opts: Any) -> None:
     """Does an R2LDM checkpoint follow its radar condition (eps-MSE with own vs shuffled condition
     per t, samples from the same noise under both)?"""

@@ -19,6 +19,7 @@ import click
 
 from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES
 
 if TYPE_CHECKING:
@@ -101,6 +102,7 @@ def _methods(
 )
 @model_options
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def quality_command(**opts: Any) -> None:
     """Quality of raw radar, R2LDM, MSDNet (torch / onnxruntime) and ablations (Tables I, II)."""
     from msdnet.benchmarks.quality.suite import run_quality
@@ -164,6 +166,7 @@ def _downstream(
 @sequence_options
 @model_options
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def odometry_command(**opts: Any) -> None:
     """GICP odometry errors of raw radar, the models and LiDAR over simulated sequences."""
     doc = _downstream("odometry", opts)
@@ -179,6 +182,7 @@ def odometry_command(**opts: Any) -> None:
 @sequence_options
 @model_options
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def place_command(**opts: Any) -> None:
     """ScanContext Recall@K of raw radar, the models and LiDAR over simulated sequences."""
     ks = int_tuple("--ks", opts["ks_text"], 1)

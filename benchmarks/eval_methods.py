@@ -132,8 +132,8 @@ class TorchMethod(Method):
     def __init__(self, checkpoint: Path, settings: RunSettings, name: str | None = None) -> None:
         import torch
 
-        from msdnet.training.checkpoint import load_checkpoint
-        from msdnet.training.models import bev_shape
+        from msdnet.training.models.assembly import bev_shape
+        from msdnet.training.recipe.checkpoint import load_checkpoint
 
         if settings.threads is not None:
             torch.set_num_threads(settings.threads)
@@ -157,7 +157,7 @@ class TorchMethod(Method):
     def run(self, radar: PointCloud, seed: int) -> np.ndarray:
         import torch
 
-        from msdnet.training.batch import make_encoder_input
+        from msdnet.training.data.batch import make_encoder_input
 
         pts = np.ascontiguousarray(radar.select(self.columns).points, dtype=np.float32)
         enc = make_encoder_input([pts], self.cfg.grid, self.max_voxels)

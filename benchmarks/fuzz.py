@@ -29,6 +29,7 @@ import numpy as np
 
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.files import VOD_RADAR_COLUMNS, WRITE_FORMATS, read_cloud, write_cloud
 
 READERS = ("ply", "pcd", "npy", "bin", "txt", "msg")
@@ -226,6 +227,7 @@ def report(tallies: dict[str, Tally], cases: int, seed: int) -> str:
 @click.option("--work", type=click.Path(path_type=Path), help="Folder for the cases [a temporary one].")
 @click.option("--json", "json_out", type=click.Path(path_type=Path), help="Also write the tallies as JSON.")
 @one_line_errors
+@checks_outputs(work="into", json_out="file")  # before any work
 def fuzz_command(
     cases: int, seed: int, readers: tuple[str, ...], work: Path | None, json_out: Path | None
 ) -> None:

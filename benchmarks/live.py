@@ -1,14 +1,16 @@
 """``msdnet-bench live``: msdnet-node end to end on loopback: latency, drops, max rate, a storm.
 
-Processes: a publisher (``runtime/frontends/live/publish``) sends the VoD example radar scans (cycled) as
-``/radar/points`` at a fixed rate; one ``msdnet-node`` (the model, ``--threads``) densifies them;
+Processes: a publisher (``runtime/frontends/live/publish``) sends the VoD example radar scans in turn
+as ``/radar/points`` at a fixed rate (PointCloud2, or RadarScan with ``--input radar_scan``: x y z
+in polar form, the compensated radial velocity as doppler_velocity); one ``msdnet-node`` (the
+model, ``--threads``) densifies them;
 this process collects ``/radar/points/dense`` and matches replies to sends by header stamp.
 End-to-end latency = reply received - scan sent (both CLOCK_MONOTONIC); drops = scans sent
 without a reply (the node counts those it replaced: latest-message-wins). Every participant uses
 the loopback-only CYCLONEDDS_URI (``runtime/frontends/live/dds.loopback_env``) and a domain id of its own.
 
 Runs: 10 and 20 Hz for ``messages`` scans each; the highest rate held without a drop (a ladder
-down from 1 / the node's median service time, ``ladder_messages`` each); the storm (issue 24):
+down from 1 / the node's median service time, ``ladder_messages`` each); the storm:
 ``storm_hz`` for ``storm_s`` seconds — every latency within one scan's time plus one (2 x the
 largest service time, plus ``SLACK_S``), drops counted, resident memory flat (last vs first
 quarter after a warm-up, < 5 %), then a second publisher process (the first one has exited) is
@@ -39,13 +41,20 @@ WARMUP_REPLIES = 10  # the storm's memory baseline starts once this many replies
 MEMORY_FLAT_PCT = 5.0  # "memory flat": growth over the storm below this share (as msdnet-bench soak)
 SLACK_S = 0.1  # transport and scheduling allowance on the storm's latency bound
 TOPIC = "/radar/points"
+INPUT_TYPES = {"pointcloud2": "sensor_msgs/msg/PointCloud2", "radar_scan": "radar_msgs/msg/RadarScan"}
 
 
 class NodeRun:
     """One msdnet-node process and a /dense collector in this process."""
 
     def __init__(
-        self, env: dict[str, str], domain: int, model: Path, threads: int | None, work: Path
+        self,
+        env: dict[str, str],
+        domain: int,
+        model: Path,
+        threads: int | None,
+        work: Path,
+        input_type: str = "pointcloud2",
     ) -> None:
         from msdnet.runtime.frontends.live.publish import DenseCollector
 
@@ -53,6 +62,8 @@ class NodeRun:
         cmd = [sys.executable, "-m", "msdnet.runtime.frontends.live.cli", "--domain-id", str(domain)]
         cmd += ["--model", str(model), "--stats-json", str(self.stats_path)]
         cmd += [] if threads is None else ["--threads", str(threads)]
+        cmd += ["--input-type", input_type]
+        self.input_type = input_type
         self.proc = subprocess.Popen(
             cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
         )
@@ -77,6 +88,8 @@ class NodeRun:
             str(self.domain),
         ]
         cmd += ["--hz", str(hz), "--count", str(count), "--start-ns", str(start_ns), "--log", str(log)]
+        if self.input_type == "radar_scan":  # the same scans as RadarScan (VoD: the compensated v_r)
+            cmd += ["--radar-scan", "--velocity", "v_r_compensated"]
         proc = subprocess.Popen(
             cmd, env=self.env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
         )
@@ -120,9 +133,21 @@ def _replies(run: NodeRun, sent: dict[int, float], settle: float) -> list[float]
     return [got[s] - sent[s] for s in got]
 
 
+def _node(ctx: dict[str, Any]) -> NodeRun:
+    """A new node on the next domain, as ``ctx`` sets it up."""
+    return NodeRun(
+        ctx["env"],
+        ctx["next_domain"](),
+        ctx["model"],
+        ctx["threads"],
+        ctx["work"],
+        ctx.get("input", "pointcloud2"),
+    )
+
+
 def rate_run(ctx: dict[str, Any], hz: float, count: int, start_ns: int) -> dict[str, Any]:
     """One node, one publisher at ``hz`` for ``count`` scans -> latency percentiles and drops."""
-    run = NodeRun(ctx["env"], ctx["next_domain"](), ctx["model"], ctx["threads"], ctx["work"])
+    run = _node(ctx)
     try:
         sent = run.publish(ctx["files"], hz, count, start_ns, ctx["work"])
         lat = _replies(run, sent, settle=2.0)
@@ -138,6 +163,7 @@ def rate_run(ctx: dict[str, Any], hz: float, count: int, start_ns: int) -> dict[
         "node_receive_to_publish_ms": {k: _round(v) for k, v in stats["latency_ms"].items() if k != "count"},
         "node_service_ms": {k: _round(v) for k, v in stats["service_ms"].items()},
         "sigterm_exit_s": round(exit_s, 3),
+        "engines": stats.get("engines"),
     }
 
 
@@ -147,7 +173,7 @@ def _round(v: float | None) -> float | None:
 
 def storm_run(ctx: dict[str, Any], hz: float, seconds: float, start_ns: int) -> dict[str, Any]:
     """The storm (module docstring) on one node; -> figures and the pass/fail of each check."""
-    run = NodeRun(ctx["env"], ctx["next_domain"](), ctx["model"], ctx["threads"], ctx["work"])
+    run = _node(ctx)
     try:
         sent = run.publish(ctx["files"], hz, round(hz * seconds), start_ns, ctx["work"])
         rss = list(run.rss)  # resident memory over the storm (0.25 s apart)
@@ -170,6 +196,7 @@ def storm_run(ctx: dict[str, Any], hz: float, seconds: float, start_ns: int) -> 
         "replies": len(lat),
         "drops": len(sent) - len(lat),
         "node_dropped": stats["dropped"],
+        "engines": stats.get("engines"),
         "end_to_end_ms": _pct(lat),
         "bound_ms": round(bound * 1e3, 1),
         "latency_bounded": bool(lat) and max(lat) <= bound,
@@ -202,13 +229,24 @@ def max_rate(
     return {"max_hz_without_drops": None, "ladder": ladder}
 
 
+def engines_text(engines: dict[str, Any] | None) -> str:
+    """``provider auto: encoder.onnx openvino, ...; head coarse-to-fine`` (or the provider alone)."""
+    if not engines:
+        return "not recorded"
+    graphs = ", ".join(f"{f} {e}" for f, e in engines.get("graphs", {}).items())
+    text = f"provider {engines['provider']}" + (f": {graphs}" if graphs else "")
+    return text + (f"; head {engines['head']}" if engines.get("head") else "")
+
+
 def markdown(doc: dict[str, Any]) -> str:
     """The results page."""
     lines = [
         "# msdnet-bench live: msdnet-node end to end on loopback",
         "",
-        f"Model `{doc['model']}`, threads {doc['threads'] or 'default'}; {doc['note']}.",
+        f"Model `{doc['model']}`, threads {doc['threads'] or 'default'}, input "
+        f"{INPUT_TYPES[doc.get('input', 'pointcloud2')]}; {doc['note']}.",
         f"Machine: {doc['machine'].get('cpu', '?')}, load average at the start {doc['load_average']}.",
+        f"Engines: {engines_text(doc.get('engines'))}.",
         "",
         "End-to-end latency = reply received - scan sent (publisher and subscriber processes on loopback);",
         "node latency = receive -> publish inside msdnet-node; service = one scan's own time (no wait).",
@@ -257,6 +295,7 @@ def live_bench(
     storm_hz: float,
     storm_s: float,
     rates: tuple[float, ...] = (10.0, 20.0),
+    input_type: str = "pointcloud2",
 ) -> dict[str, Any]:
     """Every run of the module docstring; -> the results document."""
     from msdnet.runtime.frontends.live.dds import loopback_env
@@ -274,17 +313,20 @@ def live_bench(
             "files": files,
             "work": work,
             "next_domain": lambda: next(counter),
+            "input": input_type,
         }
         start = 1_700_000_000 * 10**9
         doc: dict[str, Any] = {
             "model": shown_path(model),
             "threads": threads,
+            "input": input_type,
             "load_average": [round(x, 2) for x in os.getloadavg()],
         }
         doc["rates"] = [rate_run(ctx, hz, messages, start + i * 10**12) for i, hz in enumerate(rates)]
         p50 = min(r["node_service_ms"]["p50"] or 1.0 for r in doc["rates"])
         doc["max_rate"] = max_rate(ctx, p50, ladder_messages, start + 10 * 10**12)
         doc["storm"] = storm_run(ctx, storm_hz, storm_s, start + 50 * 10**12)
+    doc["engines"] = doc["rates"][0].get("engines")  # the node's provider and its picks
     doc["machine"] = asdict(machine_info(sgemm=False))
     return doc
 
@@ -305,6 +347,14 @@ def live_bench(
 @click.option("--ladder-messages", type=click.IntRange(min=1), default=100, show_default=True)
 @click.option("--storm-hz", type=float, default=40.0, show_default=True)
 @click.option("--storm-s", type=float, default=30.0, show_default=True)
+@click.option(
+    "--input",
+    "input_type",
+    type=click.Choice(sorted(INPUT_TYPES)),
+    default="pointcloud2",
+    show_default=True,
+    help="Message type the scans are sent as (radar_scan: results as live-radar_scan.*).",
+)
 @click.option("--note", default="", help="A line for the page (e.g. what else loads the machine).")
 @click.option("--out", type=click.Path(path_type=Path), default=Path("docs/results/live"), show_default=True)
 @one_line_errors
@@ -316,18 +366,31 @@ def live_command(
     ladder_messages: int,
     storm_hz: float,
     storm_s: float,
+    input_type: str,
     note: str,
     out: Path,
 ) -> None:
     """msdnet-node end to end on loopback: latency, drops, max rate, storm."""
     from msdnet.benchmarks.stages import write_markdown_and_json
     from msdnet.runtime.frontends.live.dds import cyclonedds
+    from msdnet.runtime.io.atomic import check_writable
 
     cyclonedds()
     files = sorted((data / "radar" / "training" / "velodyne").glob("*.bin"))
     if not files:
         raise MsdnetError(data, "no radar/training/velodyne/*.bin scans (a VoD folder)")
-    doc = live_bench(resolve_model(model), files, threads, messages, ladder_messages, storm_hz, storm_s)
+    check_writable(out, "into")  # before any work
+    doc = live_bench(
+        resolve_model(model),
+        files,
+        threads,
+        messages,
+        ladder_messages,
+        storm_hz,
+        storm_s,
+        input_type=input_type,
+    )
     doc["note"] = note or "nothing noted about the machine's load"
-    write_markdown_and_json(doc, markdown(doc), out, "live")
+    stem = "live" if input_type == "pointcloud2" else f"live-{input_type}"
+    write_markdown_and_json(doc, markdown(doc), out, stem)
     click.echo(markdown(doc))

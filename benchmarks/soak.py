@@ -1,6 +1,6 @@
 """``msdnet-bench soak``: resident memory of one ``msdnet-infer`` process over thousands of frames.
 
-A folder of ``frames`` links to the INPUTS files (cycled, so consecutive frames differ) goes
+A folder of ``frames`` links to the INPUTS files (in turn, so consecutive frames differ) goes
 through ONE ``msdnet-infer`` process, exactly as a user runs it (read, voxelize, encoder, DDIM
 loop, head, decode, atomic write, per file; the summary rows accumulate). This process polls
 the child's resident set size (``VmRSS`` in ``/proc/<pid>/status``) and the number of outputs
@@ -29,7 +29,7 @@ from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.frontends.infer.files import collect_inputs
 from msdnet.runtime.frontends.model_args import resolve_model
-from msdnet.runtime.io.atomic import atomic_output
+from msdnet.runtime.io.atomic import atomic_output, checks_outputs
 
 
 @dataclass(frozen=True)
@@ -37,7 +37,7 @@ class SoakResult:
     """One soak run; memory in MiB of resident set size of the msdnet-infer process."""
 
     model: str  # model folder
-    inputs: int  # distinct input files cycled
+    inputs: int  # distinct input files, used in turn
     frames: int  # frames run through the one process
     warmup: int  # frames done when the baseline was taken
     steps: int | None  # --steps (None: the manifest's T_m)
@@ -134,7 +134,7 @@ def write_results(res: SoakResult, out: Path) -> None:
     lines = [
         "# msdnet-infer soak",
         "",
-        f"{res.frames} frames ({res.inputs} distinct files, cycled) through one msdnet-infer process; "
+        f"{res.frames} frames ({res.inputs} distinct files, in turn) through one msdnet-infer process; "
         f"model `{Path(res.model).name}`, steps {res.steps or 'manifest'}, "
         f"threads {res.threads or 'default'}; "
         f"{res.seconds:.0f} s. Machine: {machine.get('cpu', '?')}.",
@@ -164,6 +164,7 @@ def write_results(res: SoakResult, out: Path) -> None:
 @click.option("--limit", "limit_pct", type=float, default=5.0, show_default=True, help="Max growth, %.")
 @click.option("--out", type=click.Path(path_type=Path), help="Write soak.json and soak.md here.")
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def soak_command(
     inputs: tuple[Path, ...],
     model: Path | None,
@@ -174,7 +175,7 @@ def soak_command(
     limit_pct: float,
     out: Path | None,
 ) -> None:
-    """Resident memory of one msdnet-infer process over FRAMES frames cycled from INPUTS."""
+    """Resident memory of one msdnet-infer process over FRAMES frames taken in turn from INPUTS."""
     if not Path("/proc/self/status").is_file():
         raise MsdnetError("soak", "needs Linux /proc to read the process's resident memory")
     files = collect_inputs(inputs)

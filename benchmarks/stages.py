@@ -28,6 +28,7 @@ import click
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 
 T_BUCKETS = 10  # buckets of t over 1..T
 
@@ -60,7 +61,7 @@ def frame_batches(ds: Any, frame_ids: list[str], cfg: Any) -> Iterator[tuple[np.
     """(radar (N, R) float32 in ``cfg.radar_columns``, LiDAR (M, 3) float32 [x, y, z], the
     collated batch of that one frame) for each frame with radar and LiDAR points in the grid."""
     from msdnet.runtime.io.datasets.preprocess import preprocess_frame
-    from msdnet.training.batch import collate
+    from msdnet.training.data.batch import collate
 
     for fid in frame_ids:
         frame = preprocess_frame(ds.get(fid), cfg.grid)
@@ -94,13 +95,13 @@ def stage_report(
     """The figures above for a student checkpoint, as a JSON-ready dict."""
     import torch
 
-    from msdnet.benchmarks.metrics import score_frame
-    from msdnet.benchmarks.quality.suite import crop_to_grid, xy_range
     from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.engine.decode import decode_occupancy
     from msdnet.runtime.errors import MsdnetError
-    from msdnet.training.checkpoint import load_checkpoint
+    from msdnet.runtime.metrics.cloud import score_frame
+    from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
     from msdnet.training.nn.adapter import NoiseAdapter
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     if threads is not None:
         torch.set_num_threads(threads)
@@ -269,6 +270,7 @@ def write_report(doc: dict[str, Any], out: Path) -> None:
 @click.option("--threads", type=click.IntRange(min=1), help="torch threads.")
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Folder for stages.json/.md.")
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def stages_command(checkpoint: Path, out: Path, **opts: Any) -> None:
     """Does each stage of a student checkpoint do its job (denoiser eps-MSE per t, adapter gate,
     features and points before / after the DDIM loop)?"""

@@ -22,7 +22,8 @@ import click
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.io.atomic import clean_stale_temps, temp_name
+from msdnet.runtime.frontends.infer.option_use import given
+from msdnet.runtime.io.atomic import checks_outputs, clean_stale_temps, temp_name
 from msdnet.runtime.io.datasets import DATASET_NAMES
 from msdnet.runtime.model.artifact import MANIFEST
 from msdnet.training.config import MODEL_PRESETS, ModelConfig
@@ -93,7 +94,7 @@ def load_for_export(checkpoint: Path) -> tuple[Any, ModelConfig, Any]:
     """(model, config, state) of ``checkpoint``; every failure is one MsdnetError: an unknown
     preset name, weights that do not load (safetensors' own error on a corrupt file whose
     hash in checkpoint.json was updated or removed)."""
-    from msdnet.training.checkpoint import MODEL_FILE, load_checkpoint, read_checkpoint
+    from msdnet.training.recipe.checkpoint import MODEL_FILE, load_checkpoint, read_checkpoint
 
     folder, cfg, _ = read_checkpoint(checkpoint)
     if cfg.preset not in MODEL_PRESETS:
@@ -129,12 +130,15 @@ def export_model(
     seed: int = 0,
     threads: int | None = None,
     sign_key: Path | None = None,
+    encoder_form: str = "rulebook",
 ) -> tuple[dict[str, Any], VerifyReport | None]:
     """Export ``model`` (a student or R2LDM torch module) into the artifact folder ``out``.
 
     With ``frames`` ((N, C) float32 radar scans in ``cfg.radar_columns`` order) the artifact is
     verified before it is published; :class:`VerificationFailed` leaves ``out`` unchanged.
     ``sign_key``: an ed25519 private key (PEM) that signs the final manifest (``manifest.sig``).
+    ``encoder_form``: "rulebook" or "pairs" (``export.encoder_pairs``: the same weights, only the
+    real neighbour pairs multiplied).
     Returns (manifest, verification report or None).
     """
     import torch
@@ -159,8 +163,8 @@ def export_model(
     report = None
     try:
         torch.manual_seed(seed)
-        params, _ = export_all(model, kind, cfg, tmp)
-        manifest = build_manifest(tmp, kind, cfg, params, source)
+        params, _ = export_all(model, kind, cfg, tmp, encoder_form)
+        manifest = build_manifest(tmp, kind, cfg, params, source, encoder_form=encoder_form)
         write_manifest(tmp, manifest)
         if frames is not None:
             report = verify_artifact(model, kind, cfg, tmp, frames, frames_source, seed, threads)
@@ -216,7 +220,16 @@ def export_model(
     help="Choose the threshold on N frames of --data held out of the training range by the run "
     "(its --holdout slice; never validation), by the best mean rank of 5 metrics.",
 )
+@click.option(
+    "--encoder-form",
+    type=click.Choice(["rulebook", "pairs"]),
+    default="rulebook",
+    show_default=True,
+    help="encoder.onnx as rulebooks (every kernel tap, zero rows included) or pairs (only the real "
+    "neighbour pairs: fewer FLOPs on sparse scans; the same weights).",
+)
 @one_line_errors
+@checks_outputs(out="folder")  # before any work
 def main(
     checkpoint: Path,
     out: Path,
@@ -231,6 +244,7 @@ def main(
     guidance: float | None,
     steps: int | None,
     calibrate: int | None,
+    encoder_form: str = "rulebook",
 ) -> None:
     """Export a student (MSDNet) or R2LDM checkpoint to ONNX graphs and a manifest."""
     import torch
@@ -239,6 +253,10 @@ def main(
         torch.set_num_threads(threads)
     if data is not None and not (verify or calibrate):
         raise MsdnetError("--data", "only used with --verify or --calibrate")
+    if dataset is not None and data is None:
+        raise MsdnetError("--dataset", "names the layout of --data; give --data too")
+    if given(click.get_current_context(), "frames") and not verify:
+        raise MsdnetError("--frames", "only used with --verify (--calibrate takes its own count)")
     if calibrate and threshold is not None:
         raise MsdnetError("--calibrate", "choose either --threshold or --calibrate")
     if calibrate and (data is None or dataset is None):
@@ -266,8 +284,9 @@ def main(
     frame_list, source = verification_frames(cfg, data, dataset, frames) if verify else (None, "")
     try:
         manifest, report = export_model(
-            model, state.kind, cfg, out, str(checkpoint), frame_list, source, seed, threads, sign_key
-        )
+            model, state.kind, cfg, out, str(checkpoint), frame_list, source, seed, threads, sign_key,
+            encoder_form,
+        )  # fmt: skip
     except VerificationFailed as failed:
         for line in failed.report.lines():
             click.echo(line)
@@ -295,7 +314,7 @@ def _calibrated(
     model: Any, cfg: Any, dataset: str, data: Path, frames: int, seed: int, holdout: float
 ) -> float:
     """The calibrated threshold, with its table printed."""
-    from msdnet.training.calibrate import calibrate_threshold
+    from msdnet.training.recipe.calibrate import calibrate_threshold
 
     best, rows = calibrate_threshold(model, cfg, dataset, str(data), frames, seed=seed, holdout=holdout)
     where = f"held-out training-range frames (holdout {holdout:g})" if holdout > 0 else "training frames"

@@ -3,7 +3,7 @@
 The gate is a threshold on each half-scale voxel's own occupancy (the head's 1/2-scale branch):
 ``recon_head_sparse.onnx`` decodes the full scale only under voxels above it. A gate can only
 remove points (those of dropped voxels), so it is chosen on the same held-out training-range
-frames as the decoding threshold (``training.calibrate``: the run's selection slice) as the
+frames as the decoding threshold (``training.recipe.calibrate``: the run's selection slice) as the
 LARGEST gate that keeps at least ``recall`` of the points the dense head decodes there at the
 manifest's threshold. The runtime itself measures it: the artifact's Pipeline with gate 0 gives
 every half-scale voxel's gate occupancy and children's occupancy.
@@ -125,10 +125,10 @@ def add_sparse_head(
     import torch
 
     from msdnet.export.graphs import SparseHeadGraph, example_inputs, export_graph, tracing_points
-    from msdnet.training.batch import make_encoder_input
-    from msdnet.training.calibrate import pick_frames
-    from msdnet.training.checkpoint import load_checkpoint
-    from msdnet.training.data import run_splits
+    from msdnet.training.data.batch import make_encoder_input
+    from msdnet.training.data.datasets import run_splits
+    from msdnet.training.recipe.calibrate import pick_frames
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     art = load_artifact(folder)
     model, cfg, state = load_checkpoint(checkpoint)

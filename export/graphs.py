@@ -27,9 +27,9 @@ from msdnet.runtime.engine.ddim import step_coefficients
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.onnx_spec import GraphSpec
-from msdnet.training.batch import EncoderInput, make_encoder_input
 from msdnet.training.config import ModelConfig
-from msdnet.training.models import bev_shape
+from msdnet.training.data.batch import EncoderInput, make_encoder_input
+from msdnet.training.models.assembly import bev_shape
 
 
 class RgfdAdapterGraph(nn.Module):
@@ -103,7 +103,7 @@ def graph_modules(model: nn.Module, kind: str) -> list[tuple[GraphSpec, nn.Modul
             (onnx_spec.RECON_HEAD, PackedHeadGraph(model.head)),
             (onnx_spec.RECON_HEAD_SPARSE, SparseHeadGraph(model.head)),
         ]
-    if kind == "r2ldm" and model.cfg.r2ldm_recipe == "published":  # training/r2ldm_published.py
+    if kind == "r2ldm" and model.cfg.r2ldm_recipe == "published":  # training/models/r2ldm_published.py
         return [
             (onnx_spec.ENCODER_QUARTER, model.encoder),
             (onnx_spec.R2LDM_STEP, model.step),
@@ -194,13 +194,23 @@ def export_graph(module: nn.Module, args: tuple[Tensor, ...], spec: GraphSpec, p
 
 
 def export_all(
-    model: nn.Module, kind: str, cfg: ModelConfig, folder: Path
+    model: nn.Module, kind: str, cfg: ModelConfig, folder: Path, encoder_form: str = "rulebook"
 ) -> tuple[dict[str, int], EncoderInput]:
-    """Write every graph of ``model`` into ``folder``; -> (parameters per graph, traced input)."""
+    """Write every graph of ``model`` into ``folder``, the encoder in ``encoder_form``
+    (``onnx_spec.ENCODER_FORMS``: "pairs" is ``export.encoder_pairs``); -> (parameters per graph,
+    traced input)."""
+    if encoder_form not in onnx_spec.ENCODER_FORMS:
+        known = ", ".join(onnx_spec.ENCODER_FORMS)
+        raise MsdnetError("--encoder-form", f"{encoder_form!r} is not one of {known}")
     enc = make_encoder_input([tracing_points(cfg)], cfg.grid, cfg.max_voxels_radar)
     params: dict[str, int] = {}
     for spec, module in graph_modules(model, kind):
         export_graph(module, example_inputs(spec, cfg, enc), spec, folder / spec.file)
+        if spec.file == onnx_spec.ENCODER.file and encoder_form == "pairs":
+            from msdnet.export.encoder_pairs import pairs_encoder_model
+
+            levels = sum(name.startswith("down_rules_") for name in spec.inputs)
+            (folder / spec.file).write_bytes(pairs_encoder_model(module, levels).SerializeToString())
         if spec not in onnx_spec.OPTIONAL_GRAPHS:  # the sparse head's weights are recon_head's
             params[spec.file.removesuffix(".onnx")] = count_parameters(module)
     return params, enc

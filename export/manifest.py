@@ -35,9 +35,9 @@ from msdnet.runtime.engine.ddim import DiffusionConfig, alphas_cumprod
 from msdnet.runtime.io.layouts import layout_for_columns
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
-from msdnet.training.checkpoint import versions as checkpoint_versions
 from msdnet.training.config import ModelConfig
-from msdnet.training.models import bev_shape
+from msdnet.training.models.assembly import bev_shape
+from msdnet.training.recipe.checkpoint import versions as checkpoint_versions
 
 
 def runtime_diffusion(cfg: ModelConfig, kind: str) -> DiffusionConfig:
@@ -71,13 +71,16 @@ def build_manifest(
     params: dict[str, int],
     source: str,
     gate: float | None = None,
+    encoder_form: str = "rulebook",
 ) -> dict[str, Any]:
-    """The manifest of the graphs already written in ``folder`` (sizes and hashes read now)."""
+    """The manifest of the graphs already written in ``folder`` (sizes and hashes read now), its
+    encoder in ``encoder_form`` (recorded when it is not the rulebook form)."""
     diff = runtime_diffusion(cfg, kind)
     graphs = []
     optional = [s for s in onnx_spec.OPTIONAL_GRAPHS if (folder / s.file).is_file()]
     sampler = published_sampler(cfg, kind)
     for spec in (*onnx_spec.graphs_of(kind, sampler, GRAPHS_BY_KIND), *optional):
+        spec = onnx_spec.encoder_spec_of(spec, encoder_form) if spec.file == onnx_spec.ENCODER.file else spec
         size, digest = file_digest(folder / spec.file)
         graphs.append(
             {
@@ -111,6 +114,7 @@ def build_manifest(
             "alphas_cumprod": alphas_cumprod(diff).tolist(),
         },
         **({} if sampler is None else {"sampler": sampler}),
+        **({} if encoder_form == "rulebook" else {"encoder_form": encoder_form}),  # runtime.engine.pairs
         "threshold": cfg.threshold,
         "gate": gate,
         "input": {

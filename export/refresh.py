@@ -1,19 +1,22 @@
 """Re-export a model folder's graphs with this msdnet's exporter, everything it was calibrated with kept.
 
 ``python -m msdnet.export.refresh MODEL [--out DIR]``: the weights are read back out of MODEL's
-graphs (``training.recover``, which checks them by an identical re-export of the old form) and
-exported again as today's exporter writes them (2026-12-03: the head's 2x up-sampling as one
+graphs (``export.recover``, which checks them by an identical re-export of the old form) and
+exported again as this exporter writes them (e.g. the head's 2x up-sampling as one
 ``ConvTranspose`` instead of a 1x1x1 conv and an 8-D ``Transpose``). The new folder keeps the old
 manifest's threshold, gate, calibration records, default step count, source and every other file
 (``MODEL.md``, ``LICENSE.md``); only ``graphs``, ``versions`` and ``opset`` change, and a
 ``refreshed`` record lists the old hashes.
 
 Before anything is written, every graph of the new folder is run beside the old one on the
-model's own inputs (``provider_auto.graph_inputs``: a seeded scan through the old pipeline) and
+model's own inputs (``provider_measure.graph_inputs``: a seeded scan through the old pipeline) and
 must agree within the export tolerances (``export.verify``), and both pipelines must decode the
 same points from that scan. A signed folder is refused (its signature would no longer hold: sign
-the refreshed folder again with ``msdnet-export --sign``). The folder is written under a
-temporary name and renamed when whole (``export.cli.publish``).
+the refreshed folder again with ``msdnet-export --sign``). MODEL is checked as ``msdnet-infer``
+checks it (``runtime.model.artifact.load_artifact``: hashes, plain names, no external data) before
+any graph is parsed, and the output's place is checked writable (``io.atomic.check_writable``), so
+a bad folder is one line naming the file. The folder is written under a temporary name and renamed
+when whole (``export.cli.publish``).
 """
 
 from __future__ import annotations
@@ -29,8 +32,8 @@ import click
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.runtime.io.atomic import clean_stale_temps, temp_name
-from msdnet.runtime.model.artifact import MANIFEST, read_manifest
+from msdnet.runtime.io.atomic import check_writable, clean_stale_temps, temp_name
+from msdnet.runtime.model.artifact import MANIFEST, load_artifact, read_manifest
 
 SIGNATURE = "manifest.sig"
 KEPT_FROM_NEW = ("graphs", "versions", "opset")  # manifest fields the re-export decides
@@ -50,7 +53,7 @@ def _agree(old_dir: Path, new_dir: Path) -> tuple[float, int]:
     """(largest relative output difference, decoded points) of the two folders on the old
     model's own inputs; MsdnetError when a graph or the decoded points disagree."""
     from msdnet.runtime.engine.pipeline import Pipeline
-    from msdnet.runtime.engine.provider_auto import disagreement, graph_inputs, seeded_scan
+    from msdnet.runtime.engine.provider_measure import disagreement, graph_inputs, seeded_scan
 
     old, new = Pipeline.from_dir(old_dir, threads=1), Pipeline.from_dir(new_dir, threads=1)
     worst = 0.0
@@ -77,15 +80,23 @@ def refresh_model(root: str | Path, out: str | Path | None = None) -> Refreshed:
     from msdnet.export.cli import check_out, publish
     from msdnet.export.graphs import export_all
     from msdnet.export.manifest import build_manifest
-    from msdnet.training.recover import recover_model
+    from msdnet.export.recover import recover_model
 
     root = Path(root)
     out = root if out is None else Path(out)
     if (root / SIGNATURE).exists():
         raise MsdnetError(root / SIGNATURE, "a signed model: refresh it unsigned, then sign it again")
     check_out(out)
+    check_writable(out, "folder")  # before any work
+    load_artifact(root)  # as msdnet-infer checks it, before onnx parses a graph (external data, ..)
     old_manifest = read_manifest(root)
-    rec = recover_model(root)
+    try:
+        rec = recover_model(root)
+    except MsdnetError:
+        raise
+    except Exception as err:  # onnx / torch errors on a graph that passed the checks above
+        cause = " ".join(str(err).split())[:200] or type(err).__name__
+        raise MsdnetError(root, f"cannot read the weights back ({type(err).__name__}: {cause})") from None
     out.parent.mkdir(parents=True, exist_ok=True)
     clean_stale_temps(out.parent)
     tmp = out.parent / temp_name(out.name)

@@ -28,8 +28,8 @@ from msdnet.runtime.engine.decode import decode_occupancy
 from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.model import onnx_spec
-from msdnet.training.batch import make_encoder_input
 from msdnet.training.config import ModelConfig
+from msdnet.training.data.batch import make_encoder_input
 
 GRAPH_REL_TOL = 1e-4  # FAIL when a graph's max_rel exceeds this (the goal of the export)
 GRAPH_COS_TOL = 1e-6  # FAIL when a graph's cosine similarity is below 1 - this
@@ -165,11 +165,11 @@ def verify_artifact(
     rows = sorted({0, len(coeffs) // 2, len(coeffs) - 1})
     e2e = EndToEnd(steps=len(coeffs))
 
-    def run(file: str, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    def run(file: str, feeds: dict[str, np.ndarray], graph_feeds: dict | None = None) -> list[np.ndarray]:
         spec, mod = mods[file]
         ref = mod(*(torch.from_numpy(feeds[n]) for n in spec.inputs))
         ref = ref if isinstance(ref, tuple) else (ref,)
-        outs = pipe.sessions[file].run(None, feeds)
+        outs = pipe.sessions[file].run(None, feeds if graph_feeds is None else graph_feeds)
         for o, r in zip(outs, ref, strict=True):
             checks[file].add(o, r.numpy())
         return [r.numpy() for r in ref]
@@ -181,7 +181,9 @@ def verify_artifact(
             continue
         enc_spec = mods[onnx_spec.ENCODER.file][0]  # the published R2LDM's stops at level 2
         feeds = {n: t.numpy() for n, t in zip(enc_spec.inputs, encoder_tensors(enc, enc_spec), strict=True)}
-        (f_s,) = run(onnx_spec.ENCODER.file, feeds)
+        pairs = "voxel_counts" in (i.name for i in pipe.sessions[onnx_spec.ENCODER.file].get_inputs())
+        graph_feeds = pipe.encoder_feeds(pts)[0] if pairs else None  # the pair form's own inputs
+        (f_s,) = run(onnx_spec.ENCODER.file, feeds, graph_feeds)
         rng = np.random.default_rng(seed)  # x_T, then the published sampler's re-noising draws
         noise = rng.standard_normal(f_s.shape, dtype=np.float32)
         if kind == "student":

@@ -1,5 +1,5 @@
-"""Shared fixtures: where the real research data lives (read in place, never copied), and a fresh
-``--provider auto`` cache."""
+"""Shared fixtures: where the real research data lives (read in place, never copied), and the
+``--provider auto`` caches (one for the session, a fresh one per test that asks)."""
 
 from __future__ import annotations
 
@@ -11,9 +11,14 @@ os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 os.environ.setdefault("ORT_TELEMETRY_DISABLED", "1")
 os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+from msdnet.runtime.engine import provider_measure as _provider_measure
+
+REAL_STREAM_SCANS = _provider_measure.STREAM_SCANS  # before the session fixture lowers it
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -35,11 +40,34 @@ def astyx_root() -> Path:
     return ASTYX_ROOT
 
 
+TEST_STREAM_SCANS = 4  # --provider auto in tests: the warm-up scan and three timed ones
+
+
+@pytest.fixture(scope="session", autouse=True)
+def session_auto_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Path]:
+    """``--provider auto`` (the command-line default) in every test and every process a test starts:
+    one cache for the session, never the user's, so each test model is measured once; in this
+    process on ``TEST_STREAM_SCANS`` scans (the ``auto_cache`` fixture restores the real stream)."""
+    from msdnet.runtime.engine import provider_measure
+
+    before = os.environ.get("XDG_CACHE_HOME")
+    os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-session"))
+    scans, provider_measure.STREAM_SCANS = provider_measure.STREAM_SCANS, TEST_STREAM_SCANS
+    yield Path(os.environ["XDG_CACHE_HOME"])
+    provider_measure.STREAM_SCANS = scans
+    if before is None:
+        os.environ.pop("XDG_CACHE_HOME", None)
+    else:
+        os.environ["XDG_CACHE_HOME"] = before
+
+
 @pytest.fixture
 def auto_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    """``--provider auto``'s cache file, fresh under XDG_CACHE_HOME, and no picks kept in memory."""
-    from msdnet.runtime.engine import provider_auto
+    """``--provider auto``'s cache file, fresh under XDG_CACHE_HOME, no picks kept in memory, and
+    the real stream of scans."""
+    from msdnet.runtime.engine import provider_cache, provider_measure
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    monkeypatch.setattr(provider_auto, "_MEMO", {})
+    monkeypatch.setattr(provider_cache, "_MEMO", {})
+    monkeypatch.setattr(provider_measure, "STREAM_SCANS", REAL_STREAM_SCANS)
     return tmp_path / "xdg" / "msdnet" / "providers.json"

@@ -17,10 +17,10 @@ import torch
 
 from msdnet.export.graphs import export_all
 from msdnet.export.manifest import build_manifest, write_manifest
-from msdnet.training.checkpoint import CheckpointState, save_checkpoint
 from msdnet.training.config import MODEL_PRESETS, ModelConfig, TrainConfig
-from msdnet.training.data import config_for_dataset
-from msdnet.training.models import build_model
+from msdnet.training.data.datasets import config_for_dataset
+from msdnet.training.models.assembly import build_model
+from msdnet.training.recipe.checkpoint import CheckpointState, save_checkpoint
 
 _CACHE: dict[tuple[str, str], Path] = {}
 
@@ -76,7 +76,7 @@ def make_exported_checkpoint(
     goes into the manifest only, as ``msdnet-export --threshold`` does. The manifest's source names
     the checkpoint."""
     from msdnet.export.cli import export_model
-    from msdnet.training.checkpoint import load_checkpoint
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     ckpt = make_checkpoint(root / "ckpt", "student", dataset)
     model, cfg, _ = load_checkpoint(ckpt)

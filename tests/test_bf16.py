@@ -11,7 +11,7 @@ from export_helpers import make_artifact
 
 from msdnet.benchmarks.latency.peers import _table
 from msdnet.export.verify import _voxel_keys
-from msdnet.runtime.engine import provider_auto, session
+from msdnet.runtime.engine import provider_cache, provider_measure, session
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
@@ -29,7 +29,7 @@ def folder(tmp_path_factory):
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-    monkeypatch.setattr(provider_auto, "_MEMO", {})
+    monkeypatch.setattr(provider_cache, "_MEMO", {})
 
 
 def _scan(pipe: Pipeline) -> np.ndarray:
@@ -59,18 +59,18 @@ def test_cpu_without_bf16_is_one_line(monkeypatch):
 
 def test_bf16_picks_are_keyed_apart(folder):
     man = load_artifact(folder).manifest
-    f32 = provider_auto.cache_key(man, onnx_spec.ENCODER.file, 1)
-    assert provider_auto.cache_key(man, onnx_spec.ENCODER.file, 1, "f32") == f32  # old caches hold
-    assert provider_auto.cache_key(man, onnx_spec.ENCODER.file, 1, "bf16") != f32
+    f32 = provider_cache.cache_key(man, onnx_spec.ENCODER.file, 1)
+    assert provider_cache.cache_key(man, onnx_spec.ENCODER.file, 1, "f32") == f32  # old caches hold
+    assert provider_cache.cache_key(man, onnx_spec.ENCODER.file, 1, "bf16") != f32
 
 
 def test_bf16_guard_is_looser_but_rejects_a_wrong_graph():
     ref = [np.linspace(-1, 1, 600, dtype=np.float32).reshape(2, 300)]
     near = [ref[0] * (1 + 2e-2)]  # bf16 keeps ~3 digits: a few % on a value is expected
-    assert "max rel" in provider_auto.disagreement(near, ref)
-    assert provider_auto.disagreement(near, ref, precision="bf16") is None
+    assert "max rel" in provider_measure.disagreement(near, ref)
+    assert provider_measure.disagreement(near, ref, precision="bf16") is None
     wrong = [ref[0][:, ::-1].copy()]
-    assert provider_auto.disagreement(wrong, ref, precision="bf16") is not None
+    assert provider_measure.disagreement(wrong, ref, precision="bf16") is not None
 
 
 def test_peer_ratio_against_f32_peers_leaves_bf16_out():

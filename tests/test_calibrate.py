@@ -10,8 +10,8 @@ from click.testing import CliRunner
 from export_helpers import make_checkpoint, one_torch_thread
 
 from msdnet.export.cli import main as export_main
-from msdnet.training.calibrate import CANDIDATES, calibrate_threshold, pick_frames
-from msdnet.training.checkpoint import load_checkpoint
+from msdnet.training.recipe.calibrate import CANDIDATES, calibrate_threshold, pick_frames
+from msdnet.training.recipe.checkpoint import load_checkpoint
 
 
 def test_pick_frames_spread_and_bounded():

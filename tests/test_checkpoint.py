@@ -16,7 +16,8 @@ import torch
 from torch.utils.data import Dataset
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.training.checkpoint import (
+from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, ModelConfig, TrainConfig
+from msdnet.training.recipe.checkpoint import (
     META_FILE,
     MODEL_FILE,
     TRAINING_FILE,
@@ -31,8 +32,7 @@ from msdnet.training.checkpoint import (
     save_checkpoint,
     split_tensors,
 )
-from msdnet.training.config import MODEL_PRESETS, TRAIN_PRESETS, ModelConfig, TrainConfig
-from msdnet.training.loop import NonFiniteLoss, RunSpec, train
+from msdnet.training.recipe.loop import NonFiniteLoss, RunSpec, train
 
 
 class ToyData(Dataset):

@@ -7,7 +7,7 @@ import os
 import subprocess
 import sys
 
-from msdnet.training.checkpoint import read_checkpoint
+from msdnet.training.recipe.checkpoint import read_checkpoint
 
 
 def test_torchrun_two_processes_train_and_write_one_checkpoint(tmp_path, astyx_root):

@@ -8,9 +8,9 @@ from dataclasses import replace
 import torch
 from test_checkpoint import CFG, TCFG, ToyBatch, ToyData, ToyModel
 
-from msdnet.training.checkpoint import MODEL_FILE, load_weights, read_checkpoint
-from msdnet.training.loop import RunSpec, train
 from msdnet.training.nn.grad_balance import GradBalance, loop_steps
+from msdnet.training.recipe.checkpoint import MODEL_FILE, load_weights, read_checkpoint
+from msdnet.training.recipe.loop import RunSpec, train
 
 EMA_TCFG = replace(TCFG, ema_decay=0.8)
 

@@ -20,7 +20,7 @@ from msdnet.runtime.engine.ddim import alphas_cumprod
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import file_digest, load_artifact
 from msdnet.runtime.model.onnx_check import SUBSET, external_tensors
-from msdnet.training.models import build_model
+from msdnet.training.models.assembly import build_model
 
 
 @pytest.fixture(autouse=True)

@@ -51,7 +51,8 @@ def _scan(path: Path, n: int = 200, seed: int = 0, box=(0.0, -6.4, -2.0, 12.8, 6
 
 
 def _infer(args: list) -> object:
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 def _temps(folder: Path) -> list[str]:
@@ -112,7 +113,8 @@ def test_sigkill_of_workers_run_leaves_no_worker_and_rerun_cleans_and_resumes(mo
     stale.write_bytes(b"half")
     exe = Path(sys.executable).with_name("msdnet-infer")
     cmd = [str(exe), str(inputs), "--model", str(model), "--out", str(out), "--workers", "2"]
-    proc = subprocess.Popen([*cmd, "--steps", "40", "--threads", "1"], stderr=subprocess.DEVNULL)
+    cmd += ["--steps", "40", "--threads", "1", "--provider", "cpu"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.DEVNULL)
     kids: list[int] = []
     try:
         deadline = time.monotonic() + 120
@@ -240,7 +242,7 @@ def test_dropped_rows_counted_per_file_and_in_summary(model, tmp_path):
         assert read_cloud(tmp_path / "bad.npy").dropped_nonfinite == 3
     r = _infer([tmp_path / "bad.npy", tmp_path / "nan.npy", "--model", model, "--out", tmp_path / "o", *FAST])
     assert r.exit_code == 0, r.output
-    assert "points in 197 (8 NaN/Inf rows dropped)" in r.output
+    assert "points in 197 (dropped 8 with NaN/Inf" in r.output
     assert f"  dropped: {tmp_path / 'bad.npy'}: 3 rows with NaN/Inf (or beyond float32)" in r.output
     assert f"  dropped: {tmp_path / 'nan.npy'}: 5 rows" in r.output
     assert f"empty: {tmp_path / 'nan.npy'}: all 5 rows are NaN/Inf: empty output" in r.output
@@ -250,7 +252,7 @@ def test_dropped_rows_counted_per_file_and_in_summary(model, tmp_path):
 def test_pcd_claiming_more_points_than_it_holds(tmp_path):
     path = write_cloud(tmp_path / "c.pcd", PointCloud(np.ones((10, 3), np.float32), ("x", "y", "z")))
     path.write_bytes(path.read_bytes().replace(b"WIDTH 10", b"WIDTH 12").replace(b"POINTS 10", b"POINTS 12"))
-    with pytest.raises(MsdnetError, match="header claims 12 points, the data holds 10"):
+    with pytest.raises(MsdnetError, match="header states 12 points, the data holds 10"):
         read_cloud(path)
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 from msdnet.training.config import MODEL_PRESETS
-from msdnet.training.head import ReconHead, Up2x
-from msdnet.training.targets import scale_shapes
+from msdnet.training.data.targets import scale_shapes
+from msdnet.training.nn.head import ReconHead, Up2x
 
 TOL = 1e-5  # float32 reassociation between the two formulations
 

@@ -1,43 +1,82 @@
-"""runtime/ has no import circles: no module imports, directly or through others, a module that
-imports it back (module-level, function-level and TYPE_CHECKING imports all count). And its
-sub-packages keep their order: ``errors`` <- the core (``engine``, ``model``: the Pipeline reads
-the artifact, the artifact reads the engine's grid and schedule) <- ``io`` <- ``sim`` <-
-``frontends``; nothing imports a front-end but another front-end."""
+"""The package's import graph: no circles, and every import runs down the layers.
+
+Module-level, function-level and TYPE_CHECKING imports all count.
+
+- **No circle** anywhere in ``msdnet``: no module imports, directly or through others, a module
+  that imports it back.
+- **Roots** (``ROOT_MAY_IMPORT``): ``runtime`` <- ``training`` <- ``export``; ``benchmarks`` imports
+  the runtime, and training / export only in the modules of ``TORCH_SIDE``, where a comparison
+  needs the torch models or the exporter; ``models`` (the shipped models, data) imports nothing
+  and any root may import it to find them.
+- **runtime/** keeps its sub-packages in order: ``errors`` <- the core (``engine``, ``model``: the
+  Pipeline reads the artifact, the artifact reads the engine's grid and schedule) <- ``io`` <-
+  ``metrics`` / ``sim`` <- ``frontends``; nothing imports a front-end but another front-end.
+- **training/** likewise: the configs (``published_config`` <- ``config``) <- ``data`` <- ``nn``
+  <- ``models`` <- ``recipe`` <- ``cli``.
+"""
 
 from __future__ import annotations
 
 import ast
 from pathlib import Path
 
-RUNTIME = Path(__file__).resolve().parents[1] / "runtime"
-# sub-package -> the sub-packages its modules may import (besides its own)
+REPO = Path(__file__).resolve().parents[1]
+ROOTS = ("runtime", "training", "export", "benchmarks", "models")
+# root -> the other roots its modules may import
+ROOT_MAY_IMPORT = {
+    "runtime": {"models"},
+    "training": {"runtime", "models"},
+    "export": {"runtime", "training", "models"},
+    "benchmarks": {"runtime", "models"},
+    "models": set(),
+}
+# benchmark modules that compare against the torch side, so may import training and export
+TORCH_SIDE = {
+    "msdnet.benchmarks.params": "parameter counts of the torch models against the papers' tables",
+    "msdnet.benchmarks.conditioning": "runs a trained R2LDM checkpoint's torch U-Net",
+    "msdnet.benchmarks.stages": "runs each stage of a trained checkpoint in torch",
+    "msdnet.benchmarks.eval_methods": "scores torch checkpoints beside exported models",
+    "msdnet.benchmarks.latency.models": "exports random torch twins of the timed models",
+    "msdnet.benchmarks.latency.old_graphs": "exports the same random model in the old graph form",
+    "msdnet.benchmarks.latency.peers": "times the torch modules of each graph as a peer engine",
+    "msdnet.benchmarks.latency.timing": "times torch eager beside the engines",
+    "msdnet.benchmarks.latency.steps": "reads a checkpoint's config for the step sweep",
+    "msdnet.benchmarks.latency.head": "times the coarse-to-fine head at the gate export calibrates",
+    "msdnet.benchmarks.latency.encoder_forms": "exports a torch encoder in the pair and rulebook forms",
+}
+# runtime sub-package -> the sub-packages its modules may import (besides its own)
 MAY_IMPORT = {
     "errors": set(),
     "engine": {"errors", "model"},
     "model": {"errors", "engine"},
     "io": {"errors", "engine", "model"},
+    "metrics": {"errors", "engine", "io"},
     "sim": {"errors", "engine", "model", "io"},
-    "frontends": {"errors", "engine", "model", "io", "sim"},
+    "frontends": {"errors", "engine", "model", "io", "metrics", "sim"},
 }
+# training sub-package (or top-level module) -> the parts of training its modules may import
+_TRAINING_ORDER = ("published_config", "config", "data", "nn", "models", "recipe", "cli")
+TRAINING_MAY_IMPORT = {part: set(_TRAINING_ORDER[:i]) for i, part in enumerate(_TRAINING_ORDER)}
 
 
-def _modules() -> dict[str, Path]:
+def _modules(roots: tuple[str, ...] = ROOTS) -> dict[str, Path]:
     mods = {}
-    for f in RUNTIME.rglob("*.py"):
-        parts = list(f.relative_to(RUNTIME).with_suffix("").parts)
-        if parts[-1] == "__init__":
-            parts = parts[:-1]
-        mods[".".join(["msdnet.runtime", *parts])] = f
+    for root in roots:
+        for f in (REPO / root).rglob("*.py"):
+            parts = list(f.relative_to(REPO / root).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            mods[".".join(["msdnet", root, *parts])] = f
     return mods
 
 
 def _graph(mods: dict[str, Path]) -> dict[str, set[str]]:
-    """module -> the runtime modules it imports (``from pkg import mod`` counts as pkg.mod)."""
+    """module -> the msdnet modules it imports (``from pkg import mod`` counts as pkg.mod)."""
     graph: dict[str, set[str]] = {m: set() for m in mods}
     for name, file in mods.items():
         for node in ast.walk(ast.parse(file.read_text(encoding="utf-8"))):
             targets: list[str] = []
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("msdnet.runtime"):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("msdnet."):
                 subs = [f"{node.module}.{a.name}" for a in node.names]
                 targets = [s for s in subs if s in mods] or [node.module]
             elif isinstance(node, ast.Import):
@@ -81,7 +120,7 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-def test_runtime_has_no_import_circles():
+def test_package_has_no_import_circles():
     assert _cycles(_graph(_modules())) == []
 
 
@@ -90,22 +129,57 @@ def test_the_check_sees_a_circle():
     assert _cycles(graph) == [["a", "b", "c"]]
 
 
+def _root(module: str) -> str:
+    return module.split(".")[1]
+
+
+def test_roots_import_only_those_below():
+    wrong = sorted(
+        f"{a} -> {b}"
+        for a, targets in _graph(_modules()).items()
+        for b in targets
+        if _root(b) != _root(a)
+        and _root(b) not in ROOT_MAY_IMPORT[_root(a)]
+        and not (a in TORCH_SIDE and _root(b) in {"training", "export"})
+    )
+    assert wrong == []
+
+
+def test_torch_side_list_names_real_modules():
+    assert set(TORCH_SIDE) <= set(_modules(("benchmarks",)))
+
+
 def _part(module: str) -> str:
-    """``msdnet.runtime.io.datasets.vod`` -> ``io``; the package itself -> ``""``."""
+    """``msdnet.runtime.io.datasets.vod`` -> ``io``; ``msdnet.training.cli`` -> ``cli``; the
+    package itself -> ``""``."""
     return (module.split(".") + [""])[2]
 
 
-def test_runtime_is_in_its_sub_packages():
-    loose = [m for m in _modules() if _part(m) not in MAY_IMPORT and m != "msdnet.runtime"]
-    assert loose == [], f"runtime modules outside the sub-packages {sorted(MAY_IMPORT)}: {loose}"
-
-
-def test_sub_packages_import_only_those_below():
-    graph = _graph(_modules())
-    wrong = sorted(
+def _wrong_order(root: str, may_import: dict[str, set[str]]) -> list[str]:
+    graph = _graph(_modules((root,)))
+    return sorted(
         f"{a} -> {b}"
         for a, targets in graph.items()
         for b in targets
-        if _part(a) in MAY_IMPORT and _part(b) != _part(a) and _part(b) not in MAY_IMPORT[_part(a)]
+        if _part(a) in may_import and _part(b) != _part(a) and _part(b) not in may_import[_part(a)]
     )
-    assert wrong == []
+
+
+def test_runtime_is_in_its_sub_packages():
+    loose = [m for m in _modules(("runtime",)) if _part(m) not in MAY_IMPORT and m != "msdnet.runtime"]
+    assert loose == [], f"runtime modules outside the sub-packages {sorted(MAY_IMPORT)}: {loose}"
+
+
+def test_runtime_sub_packages_import_only_those_below():
+    assert _wrong_order("runtime", MAY_IMPORT) == []
+
+
+def test_training_is_in_its_sub_packages():
+    loose = [
+        m for m in _modules(("training",)) if _part(m) not in TRAINING_MAY_IMPORT and m != "msdnet.training"
+    ]
+    assert loose == [], f"training modules outside {sorted(TRAINING_MAY_IMPORT)}: {loose}"
+
+
+def test_training_parts_import_only_those_below():
+    assert _wrong_order("training", TRAINING_MAY_IMPORT) == []

@@ -36,7 +36,8 @@ def vod_scans(vod_root) -> list[Path]:
 
 
 def _infer(args: list) -> object:
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 def _expected(model: Path, scan: Path) -> np.ndarray:

@@ -11,13 +11,13 @@ import pytest
 from click.testing import CliRunner
 from export_helpers import make_artifact
 
-from msdnet.benchmarks.metrics import chamfer_distance
-from msdnet.benchmarks.quality.suite import crop_to_grid
 from msdnet.runtime import Pipeline, read_cloud
 from msdnet.runtime.frontends.infer.cli import main
 from msdnet.runtime.frontends.infer.dataset import COMPARISON_FILE, OUT_COLUMNS
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
+from msdnet.runtime.metrics.cloud import chamfer_distance
+from msdnet.runtime.metrics.crop import crop_to_grid
 
 CD_TOL = 1e-6  # metres: same points, same metric code
 
@@ -28,7 +28,8 @@ def vod_model(tmp_path_factory) -> Path:
 
 
 def _infer(args: list) -> object:
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 def test_dataset_mode_writes_clouds_and_compares(vod_model, vod_root, tmp_path):

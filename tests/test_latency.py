@@ -295,7 +295,7 @@ def test_quick_run_times_the_old_graphs_of_the_same_model(quick):
     assert set(old["old"]["stages_ms"]) == set(old["new"]["stages_ms"]) == set(STAGES)
     assert res["ratios"]["total_over_old_graphs"] == old["new_over_old"]
     md = (out / "results.md").read_text(encoding="utf-8")
-    assert "Against the graphs before issue 23" in md and "total / the old graphs' total" in md
+    assert "Against the unoptimised graphs" in md and "total / the old graphs' total" in md
 
 
 def test_keep_all_check_leaves_out_only_points_at_the_threshold():
@@ -312,3 +312,18 @@ def test_keep_all_check_leaves_out_only_points_at_the_threshold():
     assert apart_at_threshold(far, dense, 0.5) is None  # a point well above the threshold is missing
     moved = SimpleNamespace(points=pts[[0, 2, 3]] + 1e-3, confidence=sparse.confidence)
     assert apart_at_threshold(moved, dense, 0.5) is None
+
+
+def test_quick_run_records_each_stages_useful_flop_efficiency(quick):
+    out, res = quick
+    rows = res["useful_flops"]
+    assert set(rows) == {"encoder", "rgfd_adapter", "ddim_loop", "recon_head", "graphs"}
+    for stage, r in rows.items():
+        assert 0 < r["gflop_useful"] <= r["gflop"] and 0 < r["useful_share"] <= 1, stage
+        assert _finite(r["efficiency"]) and r["efficiency"] > 0 and r["ms"] > 0, stage
+        peak = res["step_graph"]["sgemm_gflops_peak"]
+        assert r["efficiency"] == pytest.approx(r["gflop_useful"] / (r["ms"] / 1e3) / peak)
+    assert rows["encoder"]["useful_share"] < 1  # radar voxels leave most taps empty
+    assert rows["graphs"]["gflop"] == pytest.approx(sum(rows[k]["gflop"] for k in rows if k != "graphs"))
+    md = (out / "results.md").read_text(encoding="utf-8")
+    assert "## Useful-FLOP efficiency per stage" in md and "| the four graph stages |" in md

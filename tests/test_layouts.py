@@ -20,7 +20,8 @@ IDS = ("00549", "01047", "01201")
 
 
 def _infer(*args: object):
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 @pytest.fixture(scope="module")

@@ -27,6 +27,12 @@ def test_short_storm(vod_root: Path, tmp_path: Path) -> None:
     assert 0 < s["drops"] <= s["node_dropped"]
     assert s["latency_bounded"], s
     assert s["restarted_publisher_served"] >= 1 and s["sigterm_within_1s"], s
+    # the node runs the default provider and says which engine each graph ran on
+    assert s["engines"]["provider"] == "auto", s["engines"]
+    assert set(s["engines"]["graphs"]) >= {"encoder.onnx", "denoiser_step.onnx"}, s["engines"]
+    assert set(s["engines"]["graphs"].values()) <= {"onnxruntime", "openvino"}
     doc = {"model": "sim-lite", "threads": 1, "note": "test", "machine": {}, "load_average": [0.0]}
     doc |= {"rates": [], "max_rate": {"max_hz_without_drops": None, "ladder": []}, "storm": s}
-    assert "## Storm: 40 Hz for 3 s" in markdown(doc)
+    doc["engines"] = s["engines"]
+    page = markdown(doc)
+    assert "## Storm: 40 Hz for 3 s" in page and "Engines: provider auto: encoder.onnx " in page

@@ -53,6 +53,8 @@ class Node:
             str(model),
             "--threads",
             "1",
+            "--provider",
+            "cpu",  # file mode's engine: the same bytes
             "--stats-json",
             str(self.stats),
             "--stats-every",

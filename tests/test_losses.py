@@ -10,7 +10,8 @@ import torch
 
 from msdnet.runtime.engine.grid import GridConfig
 from msdnet.training.config import LossWeights
-from msdnet.training.losses import (
+from msdnet.training.data.targets import scale_shapes, voxel_targets
+from msdnet.training.models.losses import (
     eps_loss,
     feature_distillation,
     occupancy_bce,
@@ -18,7 +19,6 @@ from msdnet.training.losses import (
     reconstruction_loss,
     student_total,
 )
-from msdnet.training.targets import scale_shapes, voxel_targets
 
 
 def _logit(p: float) -> float:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from msdnet.benchmarks import metrics as M
+from msdnet.runtime.metrics import cloud as M
 
 P = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
 G = np.array([[0.0, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 0.3]])

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from msdnet.training.batch import Batch, EncoderInput, collate
+from msdnet.benchmarks.params import PAPER_MILLIONS, parameter_table
 from msdnet.training.config import MODEL_PRESETS, ModelConfig
-from msdnet.training.models import StudentModel, TeacherModel, bev_shape, build_model
-from msdnet.training.params import PAPER_MILLIONS, parameter_table
-from msdnet.training.targets import scale_shapes
+from msdnet.training.data.batch import Batch, EncoderInput, collate
+from msdnet.training.data.targets import scale_shapes
+from msdnet.training.models.assembly import StudentModel, TeacherModel, bev_shape, build_model
 
 # Astyx radar columns (x y z v_r mag); the normalisation defaults follow the names.
 ASTYX_TINY = dataclasses.replace(

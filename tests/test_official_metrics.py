@@ -1,4 +1,4 @@
-"""The R2LDM authors' metric formulas (benchmarks.metrics.official_*) on hand-computed cases."""
+"""The R2LDM authors' metric formulas (runtime.metrics.official) on hand-computed cases."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from msdnet.benchmarks.metrics import (
+from msdnet.runtime.metrics.official import (
     official_bev_histogram,
     official_centroids,
     official_scores,

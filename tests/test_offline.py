@@ -58,7 +58,8 @@ def test_ci_script_sets_it_for_the_tests():
 
 
 def _infer(*args) -> object:
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 @pytest.fixture

@@ -26,21 +26,20 @@ from msdnet.benchmarks.eval_methods import (
     common_grid,
     parse_ablation,
 )
-from msdnet.benchmarks.metrics import FrameScores, score_frame
 from msdnet.benchmarks.quality.report import picture_strip, write_json
 from msdnet.benchmarks.quality.suite import (
     agreement,
-    crop_to_grid,
     evaluate_quality,
     margins,
     pick_frames,
     summarize,
-    xy_range,
 )
 from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import crop_mask, preprocess_frame
+from msdnet.runtime.metrics.cloud import FrameScores, score_frame
+from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
 
 TINY = GRID_PRESETS["tiny"]
 SETTINGS = RunSettings(threads=1)

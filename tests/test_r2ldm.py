@@ -11,8 +11,8 @@ import torch
 
 from msdnet.runtime.engine import ddim
 from msdnet.training.config import MODEL_PRESETS, R2LDM_LR
-from msdnet.training.losses import eps_loss
-from msdnet.training.models import R2LDMModel
+from msdnet.training.models.assembly import R2LDMModel
+from msdnet.training.models.losses import eps_loss
 from msdnet.training.nn.denoiser import ddim_update
 from msdnet.training.nn.unet import R2LDMStep, R2LDMUNet, ddim_update_clipped
 
@@ -114,7 +114,7 @@ def test_unet_learns_to_follow_a_small_scale_condition():
 
 
 def test_validation_losses_carry_the_conditioning_check():
-    from msdnet.training.batch import collate
+    from msdnet.training.data.batch import collate
 
     torch.manual_seed(0)
     model = R2LDMModel(TINY)
@@ -146,7 +146,7 @@ def test_r2ldm_trains_at_the_stage_2_learning_rate(tmp_path):
 
 
 def test_condition_alignment_is_an_r2ldm_training_term():
-    from msdnet.training.batch import collate
+    from msdnet.training.data.batch import collate
 
     cfg = dataclasses.replace(TINY, losses=dataclasses.replace(TINY.losses, r2ldm_cond_align=0.5))
     torch.manual_seed(0)

@@ -59,8 +59,8 @@ def test_plan_repeats_every_step_but_the_last():
 
 
 def test_latent_is_bounded_and_empty_cells_are_minus_one():
-    from msdnet.training.batch import make_encoder_input
-    from msdnet.training.r2ldm_published import LPCRAutoencoder, latent_shape
+    from msdnet.training.data.batch import make_encoder_input
+    from msdnet.training.models.r2ldm_published import LPCRAutoencoder, latent_shape
 
     cfg = _cfg()
     torch.manual_seed(0)
@@ -75,7 +75,7 @@ def test_latent_is_bounded_and_empty_cells_are_minus_one():
 
 
 def test_loss_applies_min_snr_weights(monkeypatch):
-    from msdnet.training import r2ldm_published as rp
+    from msdnet.training.models import r2ldm_published as rp
 
     lam = torch.tensor([math.log(10.0), math.log(50.0)])
     expect = torch.tensor([0.5, 0.1])
@@ -91,8 +91,8 @@ def test_torch_and_onnxruntime_sample_the_same_points(tmp_path):
     from msdnet.export.manifest import build_manifest, write_manifest
     from msdnet.runtime.engine.pipeline import Pipeline
     from msdnet.runtime.engine.pointcloud import PointCloud
-    from msdnet.training.batch import make_encoder_input
-    from msdnet.training.models import build_model
+    from msdnet.training.data.batch import make_encoder_input
+    from msdnet.training.models.assembly import build_model
 
     cfg = dataclasses.replace(_cfg(), occupancy_prior=0.5)
     torch.manual_seed(0)
@@ -136,7 +136,7 @@ def test_torch_and_onnxruntime_sample_the_same_points(tmp_path):
 
 
 def test_resampling_draws_fresh_noise():
-    from msdnet.training.models import build_model
+    from msdnet.training.models.assembly import build_model
 
     cfg = _cfg()
     torch.manual_seed(0)
@@ -185,7 +185,7 @@ def test_latency_times_it_on_msdnets_scan_by_column_name(tmp_path):
     from msdnet.export.manifest import build_manifest, write_manifest
     from msdnet.runtime.engine.pipeline import Pipeline
     from msdnet.runtime.errors import MsdnetError
-    from msdnet.training.models import build_model
+    from msdnet.training.models.assembly import build_model
 
     cfg = _cfg()
     msdnet_columns = ("x", "y", "z", "v_r", "mag")  # an Astyx MSDNet's radar columns

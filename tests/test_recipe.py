@@ -12,13 +12,13 @@ import torch
 from export_helpers import one_torch_thread, tiny_config
 
 from msdnet.runtime.engine.grid import GRID_PRESETS
-from msdnet.training.augment import augment_pair
-from msdnet.training.batch import collate
 from msdnet.training.config import AugmentConfig
-from msdnet.training.data import make_splits, run_splits
-from msdnet.training.distributed import DistInfo, EpochSampler
-from msdnet.training.latent import measure_latent_norm
-from msdnet.training.models import build_model
+from msdnet.training.data.augment import augment_pair
+from msdnet.training.data.batch import collate
+from msdnet.training.data.datasets import make_splits, run_splits
+from msdnet.training.models.assembly import build_model
+from msdnet.training.models.latent import measure_latent_norm
+from msdnet.training.recipe.distributed import DistInfo, EpochSampler
 
 GRID = GRID_PRESETS["tiny"]
 
@@ -171,8 +171,8 @@ def test_stage_report_on_a_tiny_student(astyx_root, tmp_path):
     from click.testing import CliRunner
 
     from msdnet.benchmarks.cli import main
-    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
     from msdnet.training.config import TrainConfig
+    from msdnet.training.recipe.checkpoint import CheckpointState, save_checkpoint
 
     cfg = tiny_config("astyx")
     torch.manual_seed(0)
@@ -204,8 +204,8 @@ def test_conditioning_report_on_a_tiny_r2ldm(astyx_root, tmp_path):
     from click.testing import CliRunner
 
     from msdnet.benchmarks.cli import main
-    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
     from msdnet.training.config import TrainConfig
+    from msdnet.training.recipe.checkpoint import CheckpointState, save_checkpoint
 
     cfg = tiny_config("astyx")
     torch.manual_seed(0)
@@ -251,8 +251,8 @@ def test_the_no_dgfd_ablation_exports_with_an_identity_loop(astyx_root, tmp_path
     from msdnet.export.cli import export_model
     from msdnet.runtime.io.datasets import open_dataset
     from msdnet.runtime.io.datasets.preprocess import preprocess_frame
-    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
     from msdnet.training.config import TrainConfig
+    from msdnet.training.recipe.checkpoint import CheckpointState, save_checkpoint
 
     cfg = dataclasses.replace(tiny_config("astyx"), use_dgfd=False)
     torch.manual_seed(0)

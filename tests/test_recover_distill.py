@@ -1,4 +1,4 @@
-"""A checkpoint read back from an exported model (training/recover.py), and few-step distillation
+"""A checkpoint read back from an exported model (export/recover.py), and few-step distillation
 of a student's loop (``msdnet-train student --distill N --loop-steps K``) on real Astyx frames."""
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ import torch
 from click.testing import CliRunner
 from export_helpers import make_exported_checkpoint, one_torch_thread
 
+from msdnet.export.recover import main as recover_main
+from msdnet.export.recover import recover_checkpoint, recover_model
 from msdnet.runtime.errors import MsdnetError
-from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
 from msdnet.training.cli import main as train_main
-from msdnet.training.recover import main as recover_main
-from msdnet.training.recover import recover_checkpoint, recover_model
+from msdnet.training.recipe.checkpoint import load_checkpoint, read_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -129,7 +129,7 @@ def test_distillation_options_are_checked(recovered, exported, astyx_root, tmp_p
 
 def test_recover_records_the_training_split_for_split_select(exported, astyx_root, tmp_path):
     from msdnet.benchmarks.stages import split_frames
-    from msdnet.training.checkpoint import load_checkpoint
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     out = tmp_path / "split"
     args = [str(exported[1]), "--out", str(out), "--dataset", "astyx", "--data", str(astyx_root)]

@@ -16,7 +16,7 @@ from msdnet.export.refresh import main as refresh_main
 from msdnet.export.refresh import refresh_model
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
-from msdnet.training.head import up_export_style
+from msdnet.training.nn.head import up_export_style
 
 
 def _ops(path: Path) -> set[str]:
@@ -28,7 +28,7 @@ def legacy(tmp_path_factory) -> Path:
     """A tiny student exported the old way (1x1x1 conv + 8-D Transpose), with a gate, a threshold,
     a calibration record and a MODEL.md as a shipped folder has them."""
     from msdnet.export.cli import export_model
-    from msdnet.training.checkpoint import load_checkpoint
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     root = tmp_path_factory.mktemp("legacy")
     model, cfg, _ = load_checkpoint(make_checkpoint(root / "ckpt", "student"))

@@ -46,7 +46,8 @@ def _rgb(packed: list[int]) -> np.ndarray:
 
 
 def _infer(*args) -> object:
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 def test_file_mode_recording(vod_root, tmp_path):

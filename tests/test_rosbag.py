@@ -24,7 +24,7 @@ from rosbags.typesys import Stores, get_typestore  # noqa: E402
 from msdnet.runtime.io.rosbag import POINTCLOUD2, files_to_bag, make_pointcloud2  # noqa: E402
 
 TOPIC = "/radar/points"
-RUN = ["--steps", "3", "--threads", "1", "--seed", "5"]
+RUN = ["--steps", "3", "--threads", "1", "--seed", "5", "--provider", "cpu"]
 STAMP0 = 1_700_000_000  # seconds
 FRAME_ID = "radar_link"
 
@@ -100,7 +100,8 @@ def _dense_points(msg) -> np.ndarray:
 
 
 def _infer(*args) -> object:
-    return CliRunner().invoke(main, [str(a) for a in args])
+    argv = [str(a) for a in args]  # --provider cpu unless given: outputs are compared with cpu's bytes
+    return CliRunner().invoke(main, argv if "--provider" in argv else [*argv, "--provider", "cpu"])
 
 
 @pytest.mark.parametrize(

@@ -256,7 +256,7 @@ def test_training_splits_follow_the_published_split_files(sim_dir: Path):
     """Training's validation frames are exactly what ``msdnet-bench quality --split val`` scores."""
     from msdnet.runtime.io.datasets import VodDataset
     from msdnet.training.config import MODEL_PRESETS
-    from msdnet.training.data import config_for_dataset, make_splits
+    from msdnet.training.data.datasets import config_for_dataset, make_splits
 
     cfg = config_for_dataset(MODEL_PRESETS["tiny"], "sim")
     train, val = make_splits("sim", sim_dir, cfg)
@@ -330,7 +330,7 @@ def test_astyx_rig_sensors_and_columns(astyx_dir: Path):
     assert np.linalg.norm(own, axis=1).max() <= 100.5
     # training reads it with the Astyx radar columns, so a sim-astyx model fine-tunes on astyx
     from msdnet.training.config import MODEL_PRESETS
-    from msdnet.training.data import config_for_dataset, make_splits
+    from msdnet.training.data.datasets import config_for_dataset, make_splits
 
     cfg = config_for_dataset(MODEL_PRESETS["tiny"], "sim-astyx")
     assert cfg.radar_columns == config_for_dataset(MODEL_PRESETS["tiny"], "astyx").radar_columns

@@ -9,9 +9,9 @@ import torch.nn.functional as F
 
 from msdnet.runtime.engine.rulebook import build_encoder_rulebooks
 from msdnet.runtime.model.onnx_spec import ENCODER, OPSET
-from msdnet.training.batch import make_encoder_input
 from msdnet.training.config import MODEL_PRESETS
-from msdnet.training.encoder import SparseEncoder, level_shapes
+from msdnet.training.data.batch import make_encoder_input
+from msdnet.training.nn.encoder import SparseEncoder, level_shapes
 from msdnet.training.nn.sparse import SparseDownConv3d, SubMConv3d
 
 SHAPE = (5, 7, 6)  # (D, H, W): odd sizes exercise the stride-2 border

@@ -18,11 +18,10 @@ from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model.artifact import load_artifact
-from msdnet.training.head import ReconHead
-from msdnet.training.head_gated import FixedGroupNorm, GatedReconHead
-from msdnet.training.head_gated8 import Gated8ReconHead
-from msdnet.training.head_sparse import build_head
-from msdnet.training.models import bev_shape
+from msdnet.training.models.assembly import bev_shape
+from msdnet.training.nn.head import ReconHead
+from msdnet.training.nn.head_gated import FixedGroupNorm, GatedReconHead
+from msdnet.training.nn.heads import build_head
 
 ODD = GridConfig((0.0, 0.0, 0.0, 2.2, 1.8, 1.5), (0.2, 0.2, 0.3))  # 11 x 9 x 5: odd on every axis
 
@@ -37,11 +36,7 @@ def _gate_occupancy(head: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
         return own.reshape(-1)
     d2, h2, w2 = own.shape
     up = _up(torch.sigmoid(l4)[0, 0], 2)
-    gate = torch.minimum(own, up[:d2, :h2, :w2])
-    if isinstance(head, Gated8ReconHead):  # and its 1/8 grandparent's
-        up8 = _up(torch.sigmoid(head.occ8(head._eighth(x)))[0, 0], 4)
-        gate = torch.minimum(gate, up8[:d2, :h2, :w2])
-    return gate.reshape(-1)
+    return torch.minimum(own, up[:d2, :h2, :w2]).reshape(-1)
 
 
 def _up(v: torch.Tensor, k: int) -> torch.Tensor:
@@ -51,12 +46,11 @@ def _up(v: torch.Tensor, k: int) -> torch.Tensor:
 
 def _fold_random(head: torch.nn.Module) -> None:
     """Statistics in the fixed norms as calibration would set them, not 0 / 1."""
-    norms = head.fixed_norms() if isinstance(head, Gated8ReconHead) else [head.fixed_norm()]
-    for norm in norms:
-        norm.fold(torch.rand(norm.num_groups) - 0.5, torch.rand(norm.num_groups) * 2 + 0.2)
+    norm = head.fixed_norm()
+    norm.fold(torch.rand(norm.num_groups) - 0.5, torch.rand(norm.num_groups) * 2 + 0.2)
 
 
-@pytest.mark.parametrize("kind", ["dense", "sparse", "gated", "gated8"])
+@pytest.mark.parametrize("kind", ["dense", "sparse", "gated"])
 def test_sparse_children_equal_packed(kind: str) -> None:
     torch.manual_seed(0)
     cfg = dataclasses.replace(tiny_config(), head_kind=kind)
@@ -104,49 +98,6 @@ def test_gated_head_norms_nothing_over_the_half_volume() -> None:
     assert volume == {"conv8.1", "post4.0", "post4.2.1", "post2.0"}  # 1/8, 1/4, the up-sampling
     assert {n for n, m in head.named_modules() if isinstance(m, FixedGroupNorm)} == {"post2.2.1"}
     head.load_state_dict(dense.state_dict())  # the same keys: a dense head's weights load
-
-
-def test_gated8_head_norms_nothing_over_a_volume_below_the_eighth() -> None:
-    """The gated8 head's only volume norms are the 1/8 conv's and the one on the up-sampled 1/8
-    volume (dense in the sparse graph: 1/8 is small); every norm after them is fixed."""
-    head = build_head(dataclasses.replace(tiny_config(), head_kind="gated8"))
-    volume = {
-        n
-        for n, m in head.named_modules()
-        if isinstance(m, torch.nn.GroupNorm) and not isinstance(m, FixedGroupNorm)
-    }
-    assert volume == {"conv8.1", "post4.0"}
-    fixed = {n for n, m in head.named_modules() if isinstance(m, FixedGroupNorm)}
-    assert fixed == {"post4.2.1", "post2.0", "post2.2.1"}
-    missing, unexpected = head.load_state_dict(build_head(tiny_config()).state_dict(), strict=False)
-    assert missing == ["occ8.weight", "occ8.bias"] and not unexpected  # a dense head's weights load
-
-
-@pytest.mark.parametrize("grid", [GRID_PRESETS["tiny"], ODD], ids=["tiny", "odd"])
-def test_gated8_sparse_skips_the_quarter_level_where_the_eighth_is_empty(grid: GridConfig) -> None:
-    """With a gate, 1/4 voxels are computed only near the children of 1/8 voxels that pass, a kept 1/2
-    voxel's 1/8 grandparent passes the gate; where it computes, the values are the dense ones
-    (on an odd grid too, where both up-samplings crop)."""
-    torch.manual_seed(5)
-    cfg = dataclasses.replace(tiny_config(), head_kind="gated8", grid=grid)
-    head = build_head(cfg).eval()
-    _fold_random(head)
-    with torch.no_grad():  # the 1/4 and 1/2 gates pass nearly everything: the 1/8 gate decides
-        head.occ[0].bias.fill_(6.0)
-        head.occ[1].bias.fill_(6.0)
-    x = torch.randn(1, *bev_shape(cfg))
-    with one_torch_thread(), torch.no_grad():
-        occ, off = head.packed(x)
-        x8 = head._eighth(x)
-        occ8 = torch.sigmoid(head.occ8(x8))[0, 0]
-        gate = torch.quantile(occ8.reshape(-1), 0.6).reshape(1)
-        s_occ, s_off, vox, g = head.sparse(x, gate)
-    h2, w2 = occ.shape[3:]
-    z, y, xx = vox // (h2 * w2), vox // w2 % h2, vox % w2
-    assert len(vox) > 0 and torch.all(occ8[z // 4, y // 4, xx // 4] > gate) and torch.all(g > gate)
-    assert len(vox) < occ[0, 0].numel()
-    torch.testing.assert_close(s_occ, occ.reshape(8, -1).t()[vox], rtol=0, atol=1e-6)
-    torch.testing.assert_close(s_off, off.reshape(8, 3, -1).permute(2, 0, 1)[vox], rtol=0, atol=1e-6)
 
 
 def test_gated_sparse_is_exact_where_the_half_grid_crops_children() -> None:
@@ -210,10 +161,10 @@ def test_sparse_decoder_equals_packed_decoder(grid: GridConfig) -> None:
         decode_sparse(rows_occ[:2], rows_off[:1], every[:2], grid, 0.5)
 
 
-@pytest.fixture(scope="module", params=["dense", "sparse", "gated", "gated8"])
+@pytest.fixture(scope="module", params=["dense", "sparse", "gated"])
 def sparse_pipe(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Pipeline:
     """The coarse-to-fine graph of each head kind (ReconHead.sparse, SparseReconHead.sparse,
-    GatedReconHead.sparse, Gated8ReconHead.sparse)."""
+    GatedReconHead.sparse)."""
     folder = make_artifact(tmp_path_factory.mktemp("sparse"), "student", head_kind=request.param)
     return Pipeline.from_dir(folder, threads=1)
 
@@ -250,7 +201,7 @@ def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
     assert pipe.sparse_head_outputs() == {}  # the last call ran the dense head
     assert len(dense.points) > 0 and dense.stats["head_voxels"] == every.stats["head_voxels"]
     for res in (every, kept):
-        if pipe.artifact.manifest["config"]["head_kind"] in ("gated", "gated8"):  # gather + matmul:
+        if pipe.artifact.manifest["config"]["head_kind"] == "gated":  # gather + matmul:
             assert res.points.shape == dense.points.shape  # the same sums in another order
             np.testing.assert_allclose(res.points, dense.points, rtol=0, atol=1e-5)
             np.testing.assert_allclose(res.confidence, dense.confidence, rtol=0, atol=1e-6)

@@ -82,9 +82,9 @@ def test_select_split_scores_the_runs_held_out_slice(folder, vod_root, tmp_path)
     from export_helpers import tiny_config
 
     from msdnet.runtime.io.datasets import open_dataset
-    from msdnet.training.checkpoint import CheckpointState, save_checkpoint
     from msdnet.training.config import TrainConfig
-    from msdnet.training.models import build_model
+    from msdnet.training.models.assembly import build_model
+    from msdnet.training.recipe.checkpoint import CheckpointState, save_checkpoint
 
     ids = list(open_dataset("vod", vod_root, None).frame_ids)
     ckpt = tmp_path / "run"

@@ -1,5 +1,5 @@
 """``msdnet-train`` on real Astyx frames (tiny preset, 4 frames): teacher, student, R2LDM,
-kill + resume, NaN stop, one-line errors; and the torch datasets of training/data.py."""
+kill + resume, NaN stop, one-line errors; and the torch datasets of training/data/datasets.py."""
 
 from __future__ import annotations
 
@@ -15,10 +15,10 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
 from msdnet.training.cli import main
 from msdnet.training.config import MODEL_PRESETS
-from msdnet.training.data import config_for_dataset, make_splits
+from msdnet.training.data.datasets import config_for_dataset, make_splits
+from msdnet.training.recipe.checkpoint import load_checkpoint, read_checkpoint
 
 # 6 frames: validation split frame 5 (never read), fitted 0-3, held-out selection slice frame 4
 TINY = ["--preset", "tiny", "--frames", "6"]
@@ -179,7 +179,7 @@ def test_teacher_config_check_ignores_r2ldm_only_fields(tmp_path):
 
 
 def test_init_starts_a_new_run_from_a_checkpoints_weights(teacher_run, astyx_root, tmp_path):
-    from msdnet.training.checkpoint import load_checkpoint, read_checkpoint
+    from msdnet.training.recipe.checkpoint import load_checkpoint, read_checkpoint
 
     out = tmp_path / "warm"
     one = [*_astyx(astyx_root), "--epochs", "1"]

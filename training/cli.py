@@ -21,8 +21,7 @@ import click
 import torch
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
-from msdnet.training.batch import collate
-from msdnet.training.checkpoint import config_diff, load_checkpoint, read_checkpoint
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.training.config import (
     MODEL_PRESETS,
     R2LDM_LR,
@@ -31,10 +30,13 @@ from msdnet.training.config import (
     ModelConfig,
     TrainConfig,
 )
-from msdnet.training.data import DATASETS, PairDataset, config_for_dataset, make_splits
-from msdnet.training.distributed import DistInfo, init_distributed, shutdown_distributed
-from msdnet.training.loop import RunSpec, occupancy_counts, train
-from msdnet.training.models import MODEL_KINDS, build_model
+from msdnet.training.data.batch import collate
+from msdnet.training.data.datasets import DATASETS, PairDataset, config_for_dataset, make_splits
+from msdnet.training.models.assembly import MODEL_KINDS, build_model
+from msdnet.training.nn.heads import HEAD_KINDS
+from msdnet.training.recipe.checkpoint import config_diff, load_checkpoint, read_checkpoint
+from msdnet.training.recipe.distributed import DistInfo, init_distributed, shutdown_distributed
+from msdnet.training.recipe.loop import RunSpec, occupancy_counts, train
 
 
 def _choice(value: str, choices: tuple[str, ...] | list[str], what: str) -> str:
@@ -64,7 +66,6 @@ NOT_TEACHER = (
     "use_adapter",
     "diffusion",
 )
-HEAD_KINDS = ("dense", "gated", "sparse")  # --head: training/head.py, head_gated.py, head_sparse.py
 ABLATIONS = {"rgfd": "use_rgfd", "dgfd": "use_dgfd", "adapter": "use_adapter"}  # --ablate NAME -> field
 
 
@@ -204,7 +205,7 @@ def _plan(
     default=0.15,
     show_default=True,
     help="Share of the training range (its last frames) held out to pick the best checkpoint; "
-    "the validation split is never read (0: select on the validation split, as before 2026-12).",
+    "the validation split is never read (0: select on the validation split).",
 )
 @click.option(
     "--augment/--no-augment",
@@ -295,6 +296,7 @@ def _plan(
     help="Start from this checkpoint's weights (same kind and config; fresh optimizer and schedule).",
 )
 @one_line_errors
+@checks_outputs(out="into")  # the run folder, before any work
 def main(
     kind: str,
     dataset: str,
@@ -483,11 +485,11 @@ def _with_latent_norm(
     frames: int,
 ) -> ModelConfig:
     """``cfg`` with ``latent_norm``: measured on ``frames`` training frames with a fresh teacher,
-    or what the checkpoint being resumed / started from recorded (training/latent.py)."""
+    or what the checkpoint being resumed / started from recorded (training/models/latent.py)."""
     if teacher is None or init is not None:  # --init --teacher: the student keeps its own norm
         path = out / "last" if resume else init
         return replace(cfg, latent_norm=read_checkpoint(path)[1].latent_norm) if path else cfg
-    from msdnet.training.latent import measure_latent_norm
+    from msdnet.training.models.latent import measure_latent_norm
 
     if frames < 1:
         raise MsdnetError("--latent-frames", f"must be >= 1, got {frames}")

@@ -67,13 +67,11 @@ class ModelConfig:
     denoiser_hidden: int = 32  # light denoiser bottleneck width (1x1 -> 3x3 -> 1x1)
     time_embed_dim: int = 64  # sinusoidal time embedding width
     head_channels: tuple[int, int, int] = (32, 16, 8)  # recon head 3D width at 1/4, 1/2, 1
-    # recon head: "dense" (3x3x3 convs and volume GroupNorms down to 1/2: the shipped models) or
+    # recon head (training.nn.heads): "dense" (3x3x3 convs and volume GroupNorms down to 1/2),
     # "sparse" (only 1/8 and 1/4 mix neighbours, per voxel below: runs on occupied voxels only;
-    # head_sparse.py). Sparse cost 10 % CD on sim held-out frames (docs/training.md): not the default.
-    # "gated": dense with fixed-statistics norms at 1/2, whose coarse-to-fine graph computes 1/2
-    # only under the 1/4 voxels above the gate (head_gated.py; from a dense student by
-    # training/calibrate_gated.py); "gated8": every norm below 1/8 fixed, the 1/4 level computed
-    # only under the 1/8 voxels above the gate (head_gated8.py; training/retrain_gated8.py)
+    # nn/head_sparse.py; not the default, see docs/training.md) or "gated" (dense with a
+    # fixed-statistics norm at 1/2, whose coarse-to-fine graph computes 1/2 only under the 1/4 voxels
+    # above the gate; nn/head_gated.py, made from a dense student by training/recipe/gated_head.py)
     head_kind: str = "dense"
     # sparse head only: widths at 1/4 and 1/2 (1/8 and the full scale keep head_channels[0], [2]);
     # wider than the dense head's, since below 1/4 a voxel sees only its parent (head_sparse.py)
@@ -90,7 +88,8 @@ class ModelConfig:
     train_sample_steps: int = 5  # DDIM steps of the student's training loop (with grads)
     r2ldm_sample_steps: int = 128  # R2LDM sampling steps from pure noise
     # R2LDM recipe: "improved" (ours, the fields above) or "published" (the authors' code: the
-    # teacher is its own LPCR autoencoder, and ``published`` holds the rest; training/r2ldm_published.py)
+    # teacher is its own LPCR autoencoder, and ``published`` holds the rest;
+    # training/models/r2ldm_published.py)
     r2ldm_recipe: str = "improved"
     published: PublishedR2LDMConfig = field(default_factory=PublishedR2LDMConfig)  # recipe "published"
     threshold: float = 0.5  # occupancy threshold for decoding points
@@ -100,8 +99,8 @@ class ModelConfig:
     radar_feature_norm: tuple[tuple[float, float], ...] = ()
     lidar_feature_norm: tuple[tuple[float, float], ...] = ()  # the same for the LiDAR columns
     # (shift, scale) per BEV channel of the teacher's F_l^D, measured on training frames when the
-    # student / R2LDM run starts (training/latent.py); diffusion works on (F - shift) / scale and
-    # the exported head de-normalises. () = identity (models trained before 2026-12)
+    # student / R2LDM run starts (training/models/latent.py); diffusion works on (F - shift) / scale and
+    # the exported head de-normalises. () = identity (checkpoints without a measured norm)
     latent_norm: tuple[tuple[float, float], ...] = ()
     use_rgfd: bool = True  # ablation switch: False = F_r^R is the encoder's F_r^S (no RGFD)
     use_dgfd: bool = (
@@ -202,14 +201,13 @@ class TrainConfig:
 
 
 # Peak learning rate of R2LDM's stage 2 unless --lr says otherwise: the R2LDM paper trains it at
-# 1e-4; at the preset's 1e-3 a 2026-11 Astyx run collapsed to predicting zero (eps-MSE 1.0) at the
-# OneCycle peak and never recovered (docs/training.md). OneCycleLR warms up over its first 30 %.
+# 1e-4; at the preset's 1e-3 the U-Net can collapse to predicting zero at the OneCycleLR peak and
+# not recover (docs/training.md). OneCycleLR warms up over its first 30 %.
 R2LDM_LR = 2e-4
 
 # The student's start step m: 100, not the paper's 500. With unit-variance latents and the gate
-# aligned to the forward chain at m, m = 500 drives the gate to delta ~0.07 (x_m nearly pure
-# noise) and the sim lite student's held-out occupancy IoU to 0.036 after 5 epochs, against 0.12
-# at m = 100 (docs/training.md). T_m = 50 steps either way (interval n = m / T_m = 2).
+# aligned to the forward chain at m, m = 500 leaves x_m nearly pure noise and the student learns
+# far less than at m = 100 (docs/training.md). T_m = 50 steps either way (interval n = m / T_m = 2).
 STUDENT_DIFFUSION = DiffusionConfig(start_step=100)
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Any
 
-RECIPES = ("improved", "published")  # --recipe: ours (2026-12) | the authors' public code
+RECIPES = ("improved", "published")  # --recipe: ours | the authors' public code
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ import click
 
 from msdnet.benchmarks.eval_cli import int_tuple
 from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES
 
 
@@ -19,14 +20,14 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option(
     "--head",
-    type=click.Choice(["dense", "gated", "gated8", "sparse"]),
+    type=click.Choice(["dense", "gated", "sparse"]),
     help="Recon head of random models [dense].",
 )
 @click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")
 @click.option(
     "--up-sampling",
     type=click.Choice(["conv_transpose", "depth_to_space"]),
-    help="Head up-sampling of random models' graphs; depth_to_space: as exported before 2026-12-03.",
+    help="Head up-sampling of random models' graphs; depth_to_space: the older export form.",
 )
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
 @click.option(
@@ -63,7 +64,7 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option(
     "--peers-on-one-frame",
     is_flag=True,
-    help="Time the peers on the timing input repeated (as before 2026-12-05), not on a stream of "
+    help="Time the peers on the timing input repeated, not on a stream of "
     "distinct frames; OpenVINO looks faster so.",
 )
 @click.option(
@@ -75,7 +76,7 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option(
     "--against-old",
     is_flag=True,
-    help="Random models: also time the same model as its graphs were before issue 23 (dense head, "
+    help="Random models: also time the same model with its unoptimised graphs (dense head, "
     "old up-sampling, T_m 50, cpu), interleaved in this run.",
 )
 @click.option("--data", type=click.Path(path_type=Path), help="Dataset root (Table III quality).")
@@ -84,6 +85,7 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--seed", type=int, default=0, show_default=True, help="Weights, inputs and noise.")
 @click.option("--quick", is_flag=True, help="Tiny preset, few repetitions, short sweeps (seconds).")
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def latency_command(
     out: Path,
     preset: str | None,

@@ -10,8 +10,8 @@ import torch
 
 from msdnet.benchmarks.latency.models import int8_artifact
 from msdnet.benchmarks.latency.timing import BareStep, plain_run, summary, time_stages, torch_eager
-from msdnet.benchmarks.metrics import chamfer_distance
 from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.metrics.cloud import chamfer_distance
 
 
 def torch_comparison(
@@ -24,7 +24,7 @@ def torch_comparison(
     seed: int = 0,
 ) -> dict[str, Any]:
     """torch eager (same weights, inputs and noise; inference_mode) at ``threads`` threads (the
-    ratio the issue asks for) and at 1 thread (torch's OpenMP pool spins, which a loaded machine
+    ratio the goals ask for) and at 1 thread (torch's OpenMP pool spins, which a loaded machine
     punishes), against ``ort_graph_seconds`` (per run: encoder + adapter + loop + head in ORT).
     Also the largest occupancy difference between torch and onnxruntime: proof of the same model."""
     seconds, occ_torch = torch_eager(model, pipe, points, None, threads, repeats, seed)

@@ -61,10 +61,10 @@ def _export(
     model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, source: str, up: str | None = None
 ) -> int:
     """Export ``model`` into the new ``folder``, the head's up-sampling in form ``up``
-    (``training.head.Up2x``; None: the exporter's own); -> deployed parameter count."""
+    (``training.nn.head.Up2x``; None: the exporter's own); -> deployed parameter count."""
     from msdnet.export.graphs import export_all
     from msdnet.export.manifest import build_manifest, write_manifest
-    from msdnet.training.head import up_export_style
+    from msdnet.training.nn.head import up_export_style
 
     folder.mkdir(parents=True)
     before = torch.get_num_threads()
@@ -80,9 +80,9 @@ def _export(
 
 def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0, up: str | None = None) -> ModelPair:
     """Random MSDNet and R2LDM of ``cfg`` exported to ``folder/msdnet`` and ``folder/r2ldm``
-    (``up``: the heads' up-sampling form, ``depth_to_space`` = the graphs before 2026-12-03;
+    (``up``: the heads' up-sampling form, ``depth_to_space`` = the older export form;
     None: the exporter's own)."""
-    from msdnet.training.models import build_model
+    from msdnet.training.models.assembly import build_model
 
     torch.manual_seed(seed)
     student = build_model("student", cfg).eval()
@@ -101,7 +101,7 @@ def random_pair(cfg: ModelConfig, folder: Path, seed: int = 0, up: str | None = 
 
 def manifest_config(folder: Path) -> ModelConfig:
     """The ModelConfig stored in an artifact's manifest (``config`` block)."""
-    from msdnet.training.checkpoint import dataclass_from_dict
+    from msdnet.training.recipe.checkpoint import dataclass_from_dict
 
     manifest = load_artifact(folder).manifest
     if "config" not in manifest:
@@ -111,7 +111,7 @@ def manifest_config(folder: Path) -> ModelConfig:
 
 def _torch_twin(folder: Path) -> torch.nn.Module | None:
     """The torch model of an artifact, from the checkpoint its manifest names (None if gone)."""
-    from msdnet.training.checkpoint import load_checkpoint
+    from msdnet.training.recipe.checkpoint import load_checkpoint
 
     source = load_artifact(folder).manifest.get("source")
     if not isinstance(source, str) or not Path(source).is_dir():
@@ -133,7 +133,7 @@ def _given(folder: Path, kind: str) -> BenchModel:
 
 def given_pair(model: Path, r2ldm: Path | None, scratch: Path, seed: int = 0) -> ModelPair:
     """The user's MSDNet folder, with the given R2LDM folder or a random one on the same config."""
-    from msdnet.training.models import build_model
+    from msdnet.training.models.assembly import build_model
 
     msdnet = _given(model, "student")
     cfg = manifest_config(model)

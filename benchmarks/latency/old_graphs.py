@@ -1,14 +1,12 @@
-"""``msdnet-bench latency --against-old``: the same random MSDNet exported as its graphs were before
-issue 23, timed in the same run as the new ones (issue 23: "paper-width total <= 0.35 x today's in
-the same run, old graphs vs new").
+"""``msdnet-bench latency --against-old``: the same random MSDNet exported with its unoptimised graphs,
+timed in the same run as the optimised ones, so that their ratio compares like with like.
 
 The old graphs: the dense reconstruction head (no coarse-to-fine graph), the head's 2x up-sampling
-as a 1x1x1 conv and an 8-D ``Transpose`` (``Up2x`` "depth_to_space", the export form before
-2026-12-03), T_m = 50 DDIM steps, ``--provider cpu``. Against a dense or gated head, the weights
+as a 1x1x1 conv and an 8-D ``Transpose`` (``Up2x`` "depth_to_space", the older export
+form), T_m = 50 DDIM steps, ``--provider cpu``. Against a dense or gated head, the weights
 are the new model's: the same preset, seed and initialisation order (the gated head has the dense
 head's layers; the step count changes no weight), so the two differ only in what the engine runs
-(the ``sparse`` head kind has layers of its own, and ``gated8`` a 1/8 gate, so there some weights
-differ). Its threshold
+(the ``sparse`` head kind has layers of its own, so there some weights differ). Its threshold
 leaves the same number of points as the new model's (``calibrate_threshold`` to the run's target).
 
 Both pipelines run the run's input in turn, the order swapped every repeat, so both see the same
@@ -30,9 +28,9 @@ from msdnet.benchmarks.latency.timing import Scan, StageRuns, calibrate_threshol
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.training.config import ModelConfig
 
-OLD_STEPS = 50  # DDIM steps the old graphs ran (the README's paper-width row before issue 23)
-OLD_UP = "depth_to_space"  # the head's up-sampling export form before 2026-12-03
-OLD_PROVIDER = "cpu"  # onnxruntime only: --provider auto came with issue 23
+OLD_STEPS = 50  # DDIM steps the unoptimised graphs run
+OLD_UP = "depth_to_space"  # the head's older up-sampling export form
+OLD_PROVIDER = "cpu"  # onnxruntime only, no engine picks
 
 
 def old_config(cfg: ModelConfig) -> ModelConfig:
@@ -44,12 +42,12 @@ def old_config(cfg: ModelConfig) -> ModelConfig:
 
 def export_old(cfg: ModelConfig, folder: Path, seed: int) -> Path:
     """The random MSDNet of ``cfg`` and ``seed`` exported into the new ``folder`` as the old graphs."""
-    from msdnet.training.models import build_model
+    from msdnet.training.models.assembly import build_model
 
     old = old_config(cfg)
     torch.manual_seed(seed)  # as random_pair: the same weights as the new model's
     model = build_model("student", old).eval()
-    _export(model, "student", old, folder, f"random init, seed {seed}; graphs as before issue 23", OLD_UP)
+    _export(model, "student", old, folder, f"random init, seed {seed}; unoptimised graphs", OLD_UP)
     return folder
 
 

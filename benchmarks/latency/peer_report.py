@@ -1,5 +1,5 @@
 """results.md sections of ``msdnet-bench latency`` for the coarse-to-fine head and the peer engines,
-and the issue-14 goal rows (head, peers, per-frame budgets)."""
+and the goal rows (head, peers, per-frame budgets)."""
 
 from __future__ import annotations
 
@@ -21,9 +21,9 @@ STAGE_NAMES = {
     "ddim_loop": "DDIM loop",
     "recon_head": "head",
 }
-PAPER_PRESET_S = 0.6 * 0.384  # issue 14: 0.6 x the 0.384 s measured before the sparse head
-LITE_T50_MS = 45.0  # issue 14: the lite model at T_m = 50
-OLD_GRAPHS_SHARE = 0.35  # issue 23: paper-width total <= 0.35 x the graphs before it, same run
+PAPER_PRESET_S = 0.6 * 0.384  # goal: 0.6 x the paper preset's 0.384 s with the dense head
+LITE_T50_MS = 45.0  # goal: the lite model at T_m = 50
+OLD_GRAPHS_SHARE = 0.35  # goal: paper-width total <= 0.35 x its unoptimised graphs, same run
 
 
 def goal_rows(res: dict[str, Any]) -> list[tuple[str, float, str, float]]:
@@ -95,13 +95,13 @@ def head_section(res: dict[str, Any]) -> list[str]:
 
 
 def old_section(res: dict[str, Any]) -> list[str]:
-    """``--against-old``: this run's model against the same weights as the graphs were before issue 23."""
+    """``--against-old``: this run's model against the same weights in the unoptimised graphs."""
     old = res.get("against_old", {})
     if "new_over_old" not in old:
         return []
     out = [
         "",
-        "## Against the graphs before issue 23 (same weights and input, interleaved in this run)",
+        "## Against the unoptimised graphs (same weights and input, interleaved in this run)",
         "",
         "| graphs | T_m | head | provider | " + " | ".join(STAGE_NAMES.values()) + " | total ms | points |",
         "|---|---:|---|---|" + "---:|" * (len(STAGE_NAMES) + 2),

@@ -9,8 +9,7 @@ Engines:
   ``--provider openvino`` or ``auto`` some of them are OpenVINO's), plain ``session.run``. Where
   ours is an OpenVINO session it is the ``openvino`` (or ``openvino_bf16``) peer itself, same
   graph, precision and settings, so that peer's calls are ours too (``ours_is``): timed twice, the
-  one running second would find the kernels the first prepared for each new input shape (measured:
-  a second compiled copy of the bf16 encoder takes 2.14 ms on a shape new to it, the first 4.27);
+  one running second would find the kernels the first prepared for each new input shape;
 - ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
   (``runtime.engine.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
@@ -28,8 +27,8 @@ r runs the stage inputs of ``scans[1 + r % (len(scans) - 1)]``, so with ``repeat
 engine sees an input twice. The inputs are made on throwaway onnxruntime sessions, so ours have
 not seen them either. That matters for OpenVINO, which prepares its kernels per input shape (the
 encoder's voxel and rulebook counts and the sparse head's gated voxels change every frame): on one
-frame repeated it is faster than on a stream (``docs/results/latency-twelfth``). One scan: that
-frame repeated, the measurement before 2026-12-05. Every repeat runs each engine once per stage,
+frame repeated it is faster than on a stream. One scan: that
+frame repeated. Every repeat runs each engine once per stage,
 interleaved (the order rotated per repeat), so all see the same load. A peer's
 total is the sum of its stage medians, with onnxruntime's median standing in for a stage it cannot
 run (listed in ``substituted``). ``engine_over_best_peer`` = ours / the fastest peer, per stage and
@@ -50,7 +49,7 @@ from msdnet.benchmarks.latency.head import coarse_to_fine_gate
 from msdnet.benchmarks.latency.peer_report import OTHER_HEAD  # the head graph ours does not run
 from msdnet.benchmarks.latency.timing import Scan
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.provider_auto import failure_reason, fresh_sessions, scan_calls
+from msdnet.runtime.engine.provider_measure import failure_reason, fresh_sessions, scan_calls
 from msdnet.runtime.model import onnx_spec
 
 ENGINES = ("onnxruntime", "openvino", "openvino_bf16", "torch_eager", "torch_compile")
@@ -88,7 +87,7 @@ def peer_specs(pipe: Pipeline) -> dict[str, onnx_spec.GraphSpec]:
 def capture_feeds(
     pipe: Pipeline, points: Scan, seed: int = 0, sessions: dict[str, Any] | None = None
 ) -> dict[str, Feeds]:
-    """Every graph input of one frame per stage of :func:`peer_specs` (``provider_auto.scan_calls``:
+    """Every graph input of one frame per stage of :func:`peer_specs` (``provider_measure.scan_calls``:
     the pipeline's arithmetic with plain ``session.run`` on ``sessions``, default the pipeline's
     own; the coarse-to-fine head with ``pipe.gate``, or the manifest's when it runs the dense one)."""
     noise = np.random.default_rng(seed).standard_normal(pipe.bev_shape, dtype=np.float32)

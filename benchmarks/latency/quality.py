@@ -3,7 +3,7 @@
 Frames come from a dataset folder (``vod``, ``astyx`` or ``sim`` layout; one split, or all),
 preprocessed as for training (LiDAR cropped to the grid box and the radar's field of view, ground
 removed; radar cropped to the box). Each prediction is cropped like the reference and scored with
-``benchmarks.metrics.score_frame``, exactly as ``msdnet-bench quality`` does, so the figures compare
+``runtime.metrics.cloud.score_frame``, exactly as ``msdnet-bench quality`` does, so the figures compare
 with its tables; the rows hold the mean over the frames (``quality.suite.summarize``). Step counts
 run round-robin per frame (the order rotated per frame), so a burst of other load hits them all.
 """
@@ -16,11 +16,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from msdnet.benchmarks.metrics import FrameScores, score_frame
-from msdnet.benchmarks.quality.suite import crop_to_grid, pick_frames, summarize, xy_range
+from msdnet.benchmarks.quality.suite import pick_frames, summarize
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.metrics.cloud import FrameScores, score_frame
+from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
 
 
 def load_frames(

@@ -46,11 +46,11 @@ STAGE_LABELS = {
     "total": "total",
 }
 PAPER_FRAME_GOAL_S = 0.25  # paper preset on this 2-core CPU
-LITE_STREAM_MS = 25.0  # issue 23: a trained lite model, ms per frame at 2 threads
+LITE_STREAM_MS = 25.0  # goal: a trained lite model, ms per frame at 2 threads
 
 
 def goals(res: dict[str, Any]) -> list[dict[str, Any]]:
-    """The issue's goals as rows {goal, measured, target, met} (met is None when unmeasured)."""
+    """The latency goals as rows {goal, measured, target, met} (met is None when unmeasured)."""
     r = res["ratios"]
     rows = [
         ("MSDNet / R2LDM latency", r["msdnet_over_r2ldm"], "<=", 0.10),
@@ -145,8 +145,8 @@ def _header(res: dict[str, Any]) -> list[str]:
             "which the threshold above fixes."
         )
     if res.get("up_sampling"):
-        form = {"conv_transpose": "one ConvTranspose (since 2026-12-03)"}.get(
-            res["up_sampling"], "1x1x1 conv + 8-D Transpose (the graphs before 2026-12-03)"
+        form = {"conv_transpose": "one ConvTranspose"}.get(
+            res["up_sampling"], "1x1x1 conv + 8-D Transpose (the older export form)"
         )
         out.append(f"- Head up-sampling exported as {form}.")
     return out
@@ -160,6 +160,7 @@ def _tables(res: dict[str, Any]) -> list[str]:
         [[STAGE_LABELS[k], *[d[k][q] for d in (st, r2) for q in ("median", "p90", "min")]] for k in st],
     )
     out += _stream_section(res)
+    out += useful_section(res)
     out += ["", "## Goals (measured in this run)", ""]
     met = {True: "yes", False: "NO", None: "n/a"}
     out += _table(
@@ -202,6 +203,40 @@ def _tables(res: dict[str, Any]) -> list[str]:
         [
             [r[k] for k in ("points", "voxels", "ms", "p90", "min", "voxelize_ms")]
             for r in res["points_scaling"]
+        ],
+    )
+    return out
+
+
+def useful_section(res: dict[str, Any]) -> list[str]:
+    """Per graph stage: the FLOPs on occupied voxels only against the machine's sgemm rate
+    (``latency/useful``)."""
+    rows = res.get("useful_flops") or {}
+    if not rows:
+        return []
+    peak = res["step_graph"]["sgemm_gflops_peak"]
+    out = ["", "## Useful-FLOP efficiency per stage", ""]
+    out.append(
+        "Useful FLOPs: the FLOPs a stage needs on occupied voxels only (the encoder's real neighbour "
+        "pairs; the other stages' convolutions at the positions under an input or decoded voxel; the "
+        "head counted on the dense reference graph). Efficiency = useful FLOPs / (median time x "
+        f"sgemm {peak:.1f} GFLOP/s, the best in this run): how far a stage is from the machine's limit."
+    )
+    out.append("")
+    labels = {**STAGE_LABELS, "graphs": "the four graph stages"}
+    out += _table(
+        ["stage", "median ms", "graph GFLOP", "useful GFLOP", "useful share", "useful GFLOP/s", "efficiency"],
+        [
+            [
+                labels[k],
+                r["ms"],
+                _fmt(r["gflop"], 4),
+                _fmt(r["gflop_useful"], 4),
+                _fmt(r["useful_share"], 3),
+                r["useful_gflops_rate"],
+                _fmt(r["efficiency"], 4),
+            ]
+            for k, r in rows.items()
         ],
     )
     return out

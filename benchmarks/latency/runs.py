@@ -105,7 +105,7 @@ def stream_timings(
     """Whole frames on a stream, as a sensor feeds them: each of ``scans`` once, in order, through
     the warm pipeline as it is set (``pipe.gate``). Every input is new to every session, which
     matters for OpenVINO: it prepares kernels per input shape, and the main run's repeated input
-    lets it reuse them (``docs/results/latency-twelfth``). With a coarse-to-fine ``gate`` (default
+    lets it reuse them (``docs/latency.md``). With a coarse-to-fine ``gate`` (default
     ``pipe.gate``), each frame is then run again with the other head, whose head time alone is kept
     (the second call's other stages have seen the frame). -> {"frames": len(scans), "stages_ms":
     per-stage summaries, "decoded_median", "voxels_median", "head_voxels_median" (medians over the

@@ -20,10 +20,11 @@ import click
 
 from msdnet.benchmarks.eval_cli import SPLITS, int_tuple
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES
 
 DEFAULT_STEPS = "1,2,4,10,25,50"
-CLOSE_PCT = 1.0  # "within 1 % of the largest T_m" (issue 23's few-step goal)
+CLOSE_PCT = 1.0  # "within 1 % of the largest T_m" (the few-step goal)
 PCT_KEYS = ("cd", "mhd", "fscore@0.5", "jsd")  # metrics also shown relative to the largest T_m
 LOWER_IS_BETTER = {"cd": True, "mhd": True, "fscore@0.5": False, "jsd": True}
 
@@ -132,7 +133,7 @@ def run_steps(
     ids = None
     if split == "select":
         from msdnet.benchmarks.stages import split_frames
-        from msdnet.training.checkpoint import read_checkpoint
+        from msdnet.training.recipe.checkpoint import read_checkpoint
 
         source = checkpoint or pipe.artifact.manifest.get("source")
         if not source:
@@ -206,6 +207,7 @@ def run_steps(
 )
 @click.option("--seed", type=int, default=0, show_default=True, help="Diffusion noise seed.")
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def steps_command(steps_text: str, **opts: Any) -> None:
     """MSDNet Table III: CD, MHD, F-scores, JSD and ms per frame against T_m on a dataset split."""
     from msdnet.runtime.engine.session import resolve_providers

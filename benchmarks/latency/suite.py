@@ -10,6 +10,8 @@ first frame of ``--data``), after warm-up calls:
 - the bare step graph (IOBinding, nothing else), interleaved with the pipeline calls so both see
   the same load: the DDIM loop's share spent outside the step graph, and the step graph's FLOP
   rate against the measured numpy sgemm rate;
+- per graph stage, the useful-FLOP efficiency: the FLOPs on occupied voxels only over (median
+  time x sgemm rate) (``latency/useful``);
 - onnxruntime against torch eager (same weights and inputs, same thread count, inference_mode);
 - numba against numpy voxelization; latency against T_m (Table III, with quality when a trained
   model and data are given) and against input points (1k to 100k); the peak RSS of an
@@ -47,6 +49,7 @@ from msdnet.benchmarks.latency.timing import (
     time_stages,
     voxelize_figures,
 )
+from msdnet.benchmarks.latency.useful import efficiency, stage_flops
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import PointCloud
@@ -64,9 +67,9 @@ class LatencyConfig:
     out: Path  # folder for results.json, results.md and the plots
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
-    head: str | None = None  # random models: "dense", "gated", "gated8" or "sparse" recon head [dense]
+    head: str | None = None  # random models: "dense", "gated" or "sparse" recon head [dense]
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
-    up_sampling: str | None = None  # random models: head export form (training.head.Up2x) [the exporter's]
+    up_sampling: str | None = None  # random models: head export form (training.nn.head.Up2x) [the exporter's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
     provider: str = "cpu"  # provider short name (runtime.engine.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
@@ -251,6 +254,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         sg["sgemm_gflops_peak"] = max(machine["sgemm_gflops"], sg["sgemm_gflops_adjacent"])
         sg["flops_over_peak"] = sg["gflops_rate_best"] / sg["sgemm_gflops_peak"]
         runs: StageRuns = main["runs"]
+        flops = stage_flops(msd, points, thr["msdnet"], cfg.seed)  # on the timing input's own frame
         log(f"timing R2LDM ({cfg.r2ldm_repeats} frames) ...")
         r2 = time_stages(pipes["r2ldm"], named["r2ldm"], None, thr["r2ldm"], cfg.r2ldm_repeats, cfg.seed)
         main["step_graph"]["r2ldm_step_ms"] = summary(BareStep(pipes["r2ldm"]).seconds(3))["median"]
@@ -288,7 +292,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             peers = peer_comparison(model, msd, scans, cfg.threads, reps, cfg.seed, cfg.torch_compile)
         old: dict[str, Any] = {"note": "not run (--against-old: random models only)"}
         if cfg.against_old:
-            log("the same model as its graphs were before issue 23, interleaved ...")
+            log("the same model with its unoptimised graphs, interleaved ...")
             old = old_comparison(
                 msd,
                 points,
@@ -325,9 +329,10 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
 
             quality = quality_by_steps(msd, frames, TABLE3_STEPS, thr["msdnet"], cfg.seed)
     stages, r2_stages = runs.summaries(), r2.summaries()
+    useful = efficiency(flops, stages, main["step_graph"]["sgemm_gflops_peak"])
     res: dict[str, Any] = {
         "preset": pair.cfg.preset,
-        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated", "gated8" or "sparse"
+        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated" or "sparse"
         "up_sampling": cfg.up_sampling,  # random models' head export form (None: given models / default)
         "provider": cfg.provider,
         "threads": cfg.threads,
@@ -373,6 +378,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         "peers": peers,
         "provider_auto": {k: pipes[k].auto.to_json() for k in KINDS if pipes[k].auto is not None},
         "step_graph": main["step_graph"],
+        "useful_flops": useful,
         "steps_sweep": steps_rows,
         "table3": {"steps": list(TABLE3_STEPS), "quality": quality},
         "points_scaling": scaling,

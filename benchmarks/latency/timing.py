@@ -31,7 +31,7 @@ from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.engine.session import device_of
 from msdnet.runtime.engine.voxelize import voxelize
 from msdnet.runtime.model import onnx_spec
-from msdnet.training.batch import make_encoder_input
+from msdnet.training.data.batch import make_encoder_input
 
 Scan = np.ndarray | PointCloud  # (N, C) float32 in the model's columns, or a named cloud
 # results.json stage key -> Pipeline.timings keys summed into it
@@ -179,9 +179,7 @@ class PlainRun:
 def plain_run(pipe: Pipeline, points: Scan, steps: int | None = None, seed: int = 0) -> PlainRun:
     """The same arithmetic as ``pipe(points, steps, seed=seed)`` without IOBinding, keeping every
     step's inputs (INT8 calibration data). Noise: ``default_rng(seed)`` as the pipeline draws it."""
-    art = pipe.artifact
-    enc = make_encoder_input([pipe.select_columns(points)], art.grid, art.inputs.max_voxels)
-    feeds = {n: t.numpy() for n, t in zip(onnx_spec.ENCODER.inputs, enc.tensors(), strict=True)}
+    feeds, _, _ = pipe.encoder_feeds(pipe.select_columns(points))  # either encoder form's inputs
     (f_s,) = pipe.sessions[onnx_spec.ENCODER.file].run(None, feeds)  # (1, C, H, W)
     noise = np.random.default_rng(seed).standard_normal(pipe.bev_shape, dtype=np.float32)
     if pipe.kind == "student":

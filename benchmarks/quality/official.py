@@ -1,74 +1,24 @@
 """``msdnet-bench quality --metrics official|both``: the R2LDM authors' formulas beside ours.
 
-Per frame and method: both clouds (already cropped like the reference, see ``suite``) go through the
-official preprocessing and geometry (``benchmarks.metrics.official_scores``: 0.125 m voxel
-centroids inside [-16, 16] x [-16, 16] x [-0.5, 4.5] m, squared CD as a sum, squared Hausdorff,
-F@0.05 m); frames where either side is empty are skipped, as the script skips them. Set level: JSD
-and MMD over the per-frame BEV histograms of the preprocessed clouds of the valid frames
-(``official_set_scores``). Margins: MSDNet against EVERY R2LDM row, in both metric sets, beside the
-margins the MSDNet paper reports over R2LDM.
+The formulas and the per-method accumulator (:class:`OfficialFrames`) live in
+``msdnet.runtime.metrics.official``; this module sets their summaries beside ours: margins of
+MSDNet against EVERY R2LDM row, in both metric sets, beside the margins the MSDNet paper reports
+over R2LDM, as results.json blocks and markdown.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
-
 from msdnet.benchmarks.eval_methods import Method, primary
-from msdnet.benchmarks.metrics import (
-    official_bev_histogram,
-    official_centroids,
-    official_scores,
-    official_set_scores,
-)
+from msdnet.runtime.metrics.official import OfficialFrames
 
-# per-frame keys averaged over valid frames, as the script's "mean" block
-FRAME_KEYS = (
-    "chamfer_squared_l2",
-    "hausdorff_squared_l2",
-    "fscore",
-    "precision",
-    "recall",
-    "generated_points",
-    "ground_truth_points",
-)
 # MSDNet's margins over R2LDM in its paper (percent; negative: lower is better), per metric key of
 # ours and of the official set (the paper's "MHD" is what the script computes as squared Hausdorff)
 PAPER_MARGINS = {"CD": -15.0, "MHD": -66.0, "F-score": 44.0, "JSD": -30.0}
 OURS_KEYS = {"CD": "cd", "MHD": "mhd", "F-score": "fscore@0.05", "JSD": "jsd"}
 OFFICIAL_KEYS = {"CD": "chamfer_squared_l2", "MHD": "hausdorff_squared_l2", "F-score": "fscore", "JSD": "jsd"}
-
-
-@dataclass
-class OfficialFrames:
-    """One method's official per-frame scores and the BEV histograms of its valid frames."""
-
-    rows: list[dict[str, float]] = field(default_factory=list)  # one per frame (``valid`` 0 or 1)
-    gt_hists: list[np.ndarray] = field(default_factory=list)  # (100, 100) per valid frame
-    gen_hists: list[np.ndarray] = field(default_factory=list)
-
-    def add(self, pred: np.ndarray, ref: np.ndarray) -> None:
-        """Score one frame: pred, ref (M, 3) float32 metres."""
-        p, g = official_centroids(pred), official_centroids(ref)
-        row = official_scores(p, g, preprocess=False)
-        self.rows.append(row)
-        if row["valid"]:
-            self.gt_hists.append(official_bev_histogram(g))
-            self.gen_hists.append(official_bev_histogram(p))
-
-    def summary(self) -> dict[str, float]:
-        """Means of ``FRAME_KEYS`` over valid frames, ``jsd`` / ``mmd`` / ``valid_pairs``, and
-        ``pairs_evaluated`` / ``pairs_skipped_empty``."""
-        valid = [r for r in self.rows if r["valid"]]
-        nan = float("nan")
-        out = {k: float(np.mean([r[k] for r in valid])) if valid else nan for k in FRAME_KEYS}
-        out.update(official_set_scores(self.gt_hists, self.gen_hists))
-        out["pairs_evaluated"] = float(len(valid))
-        out["pairs_skipped_empty"] = float(len(self.rows) - len(valid))
-        return out
 
 
 def _pct(a: float, b: float) -> float:

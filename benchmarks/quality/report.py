@@ -171,10 +171,58 @@ def quality_markdown(doc: dict[str, Any]) -> str:
     ]
     out += ["", "Table II:", ""] + md_table(["Method", "CD", "MHD (m)", "JSD", "MMD (×10⁻⁴)"], rows)
     out += ["", "Paper margins MSDNet vs R2LDM: CD −15.0 %, MHD −65.8 %, F-score +44.4 %.", "", PAPER_NOTE]
+    if doc.get("objects"):
+        out += ["", *objects_markdown(doc)]
     if doc.get("pictures"):
-        out += ["", "## Pictures (BEV: radar | R2LDM | MSDNet | LiDAR)", ""]
+        out += ["", "## Pictures (BEV: radar | R2LDM | MSDNet | LiDAR; scored objects boxed)", ""]
         out += [f"![frame {fid}]({path})" for fid, path in doc["pictures"].items()]
     return "\n".join(out) + "\n"
+
+
+def objects_markdown(doc: dict[str, Any]) -> list[str]:
+    """The "Objects" section of results.md: every method over all scored objects, then hit@5 /
+    object CD per class and per range band (``doc["objects"]``, ``benchmarks.quality.objects``)."""
+    obj = doc["objects"]
+    d = obj["definition"]
+    summary = obj["summary"]
+    names = [m["name"] for m in doc["methods"] if m["name"] in summary]
+    out = [
+        "## Objects (labelled 3D boxes the LiDAR sees)",
+        "",
+        f"An object is scored when its box centre lies in the crop and the reference holds at least "
+        f"{d['min_lidar_points']} points in the box grown by {d['grow_m']:g} m; hit@{d['hit_points']}: share "
+        f"of objects with at least {d['hit_points']} of the method's points in the grown box; object CD over "
+        f"the objects hit; radar kept: share of the radar points within {d['keep_radius_m']:g} m of the "
+        f"LiDAR with a point of the method's cloud within {d['keep_radius_m']:g} m (pooled over frames).",
+        "",
+    ]
+    rows = []
+    for n in names:
+        o, k = summary[n]["overall"], summary[n]["radar_kept"]
+        rows.append(
+            [n, fmt(o["objects"]), fmt(o["hit@5"]), fmt(o["object_cd"]), fmt(o["points"], 1)]
+            + [fmt(o["lidar_points"], 1), fmt(k["share"]), f"{k['kept']} / {k['near']}"]
+        )
+    heads = ["Method", "objects", "hit@5 (↑)", "object CD (m) (↓)", "points / object"]
+    heads += ["LiDAR points / object", "radar kept (↑)", "kept / near"]
+    out += md_table(heads, rows)
+    for group, title in (("by_class", "class"), ("by_range", "range band")):
+        keys: list[str] = []
+        for n in names:
+            keys += [g for g in summary[n][group] if g not in keys]
+        out += ["", f"Per {title}: hit@5 / object CD (m) (objects)", ""]
+        rows = []
+        for n in names:
+            cells = []
+            for g in keys:
+                r = summary[n][group].get(g)
+                empty = r is None or not r["objects"]
+                cells.append("–" if empty else f"{fmt(r['hit@5'])} / {fmt(r['object_cd'])}")
+            rows.append([n, *cells])
+        first = summary[names[0]][group] if names else {}
+        counts = [f"{g} ({first[g]['objects'] if g in first else 0})" for g in keys]
+        out += md_table(["Method", *counts], rows)
+    return out
 
 
 def picture_strip(
@@ -183,11 +231,13 @@ def picture_strip(
     grid: GridConfig,
     title: str = "",
     dpi: int = 100,
+    boxes: Sequence[np.ndarray] = (),
 ) -> Path:
     """One PNG with a BEV panel per (label, points (N, >=2) [x, y, ...] radar frame, colour).
 
     As ``runtime.io.pictures.render_bev``: x forward drawn upward, y left drawn to the left, the grid box
-    and the field of view outlined. Written atomically; returns the path.
+    and the field of view outlined; ``boxes``: (4, 2) [x, y] footprints drawn on every panel.
+    Written atomically; returns the path.
     """
     fig = Figure(figsize=(4 * len(panels), 4.4), dpi=dpi)
     FigureCanvasAgg(fig)
@@ -196,6 +246,9 @@ def picture_strip(
         p = np.asarray(pts)
         ax.scatter(p[:, 1], p[:, 0], s=1.0 if len(p) > 2000 else 3.0, c=colour, linewidths=0)
         draw_grid(ax, grid, lw=0.9, margin=0.03)
+        for corners in boxes:
+            ring = np.vstack([corners, corners[:1]])
+            ax.plot(ring[:, 1], ring[:, 0], color="tab:green", lw=0.8)
         ax.set_xlabel("y (m, left)", fontsize=8)
         ax.set_aspect("equal", adjustable="box")
         ax.set_title(f"{label} ({len(p)})", fontsize=9)

@@ -12,6 +12,13 @@ indices of the hits; a second pass over the hits only writes the points.
 ``(dz * 2 + dy) * 2 + dx`` of half-scale voxel ``[z2, y2, x2]``) and gives exactly the points of
 ``decode_occupancy`` on the dense grid, in the same order; ``unpack_children`` is the plain
 numpy conversion, for comparisons outside the hot path.
+
+``radar_confidence_packed`` / ``radar_confidence_sparse``: the confidence of each input radar point
+from the head's own output, for keeping true radar returns as they are: the largest full-scale
+occupancy over the 3 x 3 x 3 voxels around the point's voxel (the voxelizer's index rule, clamped
+into the grid; neighbours outside the grid skipped). The dense head gives the full scale
+everywhere; the coarse-to-fine head only under the half-scale voxels it decoded, and a voxel it
+did not decode counts as occupancy 0.
 """
 
 from __future__ import annotations
@@ -245,3 +252,105 @@ def warmup() -> None:
     decode_sparse(
         np.full((1, 8), 0.9, np.float32), np.zeros((1, 8, 3), np.float32), np.zeros(1, np.int64), grid, 0.5
     )
+    pts = np.array([[0.1, 0.6, 0.1]], np.float32)
+    radar_confidence_packed(pts, np.zeros((8, *half), np.float32), grid)
+    radar_confidence_sparse(pts, np.full((1, 8), 0.9, np.float32), np.zeros(1, np.int64), grid)
+
+
+@njit(cache=True, inline="always")
+def _axis_index(v: np.float32, lo: float, inv: float, n: int) -> int:
+    """Voxel index of coordinate ``v`` on one axis: ``floor((float64(v) - lo) * inv)`` clamped into
+    ``[0, n - 1]`` (the voxelizer's rule 2)."""
+    return min(max(int(np.floor((np.float64(v) - lo) * inv)), 0), n - 1)
+
+
+@njit(cache=True)
+def _radar_confidence_packed_kernel(
+    points: np.ndarray, occupancy: np.ndarray, lo: np.ndarray, inv: np.ndarray, shape_xyz: np.ndarray
+) -> np.ndarray:
+    """points (K, >=3) float32, occupancy (8, D2, H2, W2) packed -> (K,) float32 neighbourhood max."""
+    w, h, d = shape_xyz[0], shape_xyz[1], shape_xyz[2]
+    out = np.zeros(points.shape[0], np.float32)
+    for k in range(points.shape[0]):
+        x0 = _axis_index(points[k, 0], lo[0], inv[0], w)
+        y0 = _axis_index(points[k, 1], lo[1], inv[1], h)
+        z0 = _axis_index(points[k, 2], lo[2], inv[2], d)
+        best = np.float32(0.0)
+        for z in range(max(z0 - 1, 0), min(z0 + 2, d)):
+            for y in range(max(y0 - 1, 0), min(y0 + 2, h)):
+                for x in range(max(x0 - 1, 0), min(x0 + 2, w)):
+                    v = occupancy[((z & 1) * 2 + (y & 1)) * 2 + (x & 1), z >> 1, y >> 1, x >> 1]
+                    best = max(best, v)
+        out[k] = best
+    return out
+
+
+@njit(cache=True)
+def _radar_confidence_sparse_kernel(
+    points: np.ndarray,
+    occupancy: np.ndarray,
+    voxels: np.ndarray,
+    lo: np.ndarray,
+    inv: np.ndarray,
+    shape_xyz: np.ndarray,
+) -> np.ndarray:
+    """points (K, >=3) float32, occupancy (N, 8), voxels (N,) int64 linear half-scale indices ->
+    (K,) float32 neighbourhood max (0 under half-scale voxels not in ``voxels``)."""
+    w, h, d = shape_xyz[0], shape_xyz[1], shape_xyz[2]
+    w2, h2, d2 = (w + 1) // 2, (h + 1) // 2, (d + 1) // 2
+    row = np.full(d2 * h2 * w2, -1, np.int64)  # half-scale linear index -> row of the head output
+    for r in range(voxels.shape[0]):
+        row[voxels[r]] = r
+    out = np.zeros(points.shape[0], np.float32)
+    for k in range(points.shape[0]):
+        x0 = _axis_index(points[k, 0], lo[0], inv[0], w)
+        y0 = _axis_index(points[k, 1], lo[1], inv[1], h)
+        z0 = _axis_index(points[k, 2], lo[2], inv[2], d)
+        best = np.float32(0.0)
+        for z in range(max(z0 - 1, 0), min(z0 + 2, d)):
+            for y in range(max(y0 - 1, 0), min(y0 + 2, h)):
+                for x in range(max(x0 - 1, 0), min(x0 + 2, w)):
+                    r = row[((z >> 1) * h2 + (y >> 1)) * w2 + (x >> 1)]
+                    if r >= 0:
+                        best = max(best, occupancy[r, ((z & 1) * 2 + (y & 1)) * 2 + (x & 1)])
+        out[k] = best
+    return out
+
+
+def _radar_points(points: np.ndarray) -> np.ndarray:
+    pts = np.ascontiguousarray(points, dtype=np.float32)
+    if pts.ndim != 2 or pts.shape[1] < 3:
+        raise ValueError(f"points must be (K, >=3) [x, y, z, ...], got shape {pts.shape}")
+    return pts
+
+
+def radar_confidence_packed(points: np.ndarray, occupancy: np.ndarray, grid: GridConfig) -> np.ndarray:
+    """points: (K, >=3) [x, y, z, ...] radar rows inside the grid box; occupancy: (8, D2, H2, W2)
+    float32 the dense head's packed output -> (K,) float32 confidence (module docstring)."""
+    pts = _radar_points(points)
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    half = packed_shape(grid)
+    if occ.shape != (8, *half):
+        raise ValueError(f"packed occupancy must be (8, *{half}), got {occ.shape}")
+    lo, _, size, shape = grid_arrays(grid)
+    return _radar_confidence_packed_kernel(pts, occ, lo, 1.0 / size, shape)
+
+
+def radar_confidence_sparse(
+    points: np.ndarray, occupancy: np.ndarray, voxels: np.ndarray, grid: GridConfig
+) -> np.ndarray:
+    """points: (K, >=3) [x, y, z, ...] radar rows inside the grid box; occupancy (N, 8) float32 and
+    voxels (N,) int64 the coarse-to-fine head's output (``decode_sparse``) -> (K,) float32
+    confidence (module docstring). Raises ValueError on mismatched shapes or an index outside the
+    half-scale grid."""
+    pts = _radar_points(points)
+    occ = np.ascontiguousarray(occupancy, dtype=np.float32)
+    vox = np.ascontiguousarray(voxels, dtype=np.int64)
+    n = vox.shape[0] if vox.ndim == 1 else -1
+    if occ.shape != (n, 8):
+        raise ValueError(f"sparse occupancy must be (N, 8) with voxels (N,); got {occ.shape}, {vox.shape}")
+    half = packed_shape(grid)
+    if n and (vox.min() < 0 or vox.max() >= half[0] * half[1] * half[2]):
+        raise ValueError(f"voxel index outside the half-scale grid {half}")
+    lo, _, size, shape = grid_arrays(grid)
+    return _radar_confidence_sparse_kernel(pts, occ, vox, lo, 1.0 / size, shape)

@@ -6,11 +6,12 @@ this module calls them all, so none of them imports another only to warm it.
 
 from __future__ import annotations
 
-from msdnet.runtime.engine import decode, rulebook, voxelize
+from msdnet.runtime.engine import decode, pairs, rulebook, voxelize
 
 
 def warmup() -> None:
     """Compile (or load from numba's cache) every runtime kernel with tiny inputs."""
     voxelize.warmup()
     rulebook.warmup()
+    pairs.warmup()
     decode.warmup()

@@ -18,6 +18,16 @@ Stages (``Result.timings`` keys, seconds):
    passes the gate (``onnx_spec.RECON_HEAD_SPARSE``), decoded by ``decode_sparse``.
 7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with
    ``keep_radar`` the input radar points inside the grid box are appended (confidence 1).
+   With a keep threshold (manifest ``keep_radar_threshold``, ``Pipeline.keep_threshold``) each
+   input radar point inside the grid box gets a confidence from the head's own output
+   (``decode.radar_confidence_*``: the largest full-scale occupancy over the 3 x 3 x 3 voxels
+   around it) and the points at or above the threshold are appended as they are; without one
+   (older manifests) the output is what it always was, byte for byte.
+
+Every input row the engine does not use is counted in ``Result.stats`` (``pointcloud.DROP_REASONS``): rows
+with NaN/Inf (those a reader already dropped, ``PointCloud.dropped_nonfinite``, and those in the
+array given), finite rows outside the grid box, and rows in the voxels over the ``max_voxels``
+cap; ``dropped`` is their sum. Counting changes no output byte.
 
 Buffers: F^S, the two ping-pong loop buffers and the head outputs are OrtValues allocated once
 and bound once (IOBinding): the loop only writes the three step scalars and swaps bindings, no
@@ -26,7 +36,9 @@ array is copied per step. A Pipeline is therefore not thread-safe: use one per t
 
 from __future__ import annotations
 
+import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,8 +48,15 @@ import onnxruntime as ort
 
 from msdnet.runtime.engine.cosine_logsnr import SamplerSettings, sampler_settings
 from msdnet.runtime.engine.ddim import step_coefficients
-from msdnet.runtime.engine.decode import decode_packed, decode_sparse, packed_shape
+from msdnet.runtime.engine.decode import (
+    decode_packed,
+    decode_sparse,
+    packed_shape,
+    radar_confidence_packed,
+    radar_confidence_sparse,
+)
 from msdnet.runtime.engine.kernels import warmup as numba_warmup
+from msdnet.runtime.engine.pairs import pair_feeds
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.engine.session import AUTO, base_provider, create_session, device_of, precision_of
@@ -55,12 +74,38 @@ class Result:
     """Output of one :class:`Pipeline` call."""
 
     points: np.ndarray  # (M, 3) float32 [x, y, z], radar frame, metres
-    confidence: np.ndarray  # (M,) float32 occupancy of each point's voxel, > threshold; 1.0 keep_radar rows
+    # (M,) float32 occupancy of each point's voxel, > threshold; a kept radar row's own confidence
+    # (keep threshold); 1.0 on the other keep_radar rows
+    confidence: np.ndarray
     timings: dict[str, float]  # seconds per stage (module docstring) and "total"
     # points_in, points_in_grid, voxels, steps, head_voxels (half-scale voxels decoded at full
-    # scale; all of them with the dense head); with keep_radar also radar_kept (the last rows)
+    # scale; all of them with the dense head); with keep_radar or a keep threshold also radar_kept
+    # (the radar rows at the end), with a keep threshold radar_confident (those kept by it);
+    # the dropped rows by reason (pointcloud.DROP_REASONS keys) and their sum, dropped
     stats: dict[str, int] = field(default_factory=dict)
     notes: tuple[str, ...] = ()  # human-readable remarks, e.g. why the output is empty
+    # (K,) float32 confidence of every input radar row inside the grid box (input order) when a
+    # keep threshold is in force (``decode.radar_confidence_*``); None otherwise
+    radar_confidence: np.ndarray | None = None
+
+
+def _drop_counts(given: Any, pts: np.ndarray, in_grid: int, over_cap: int) -> dict[str, int]:
+    """The rows of one scan the engine does not use, by reason (``pointcloud.DROP_REASONS``), summed:
+    ``given`` the caller's input (a PointCloud carries the rows its reader dropped), ``pts`` the
+    (N, C) rows voxelized, ``in_grid`` of them inside the grid box, ``over_cap`` of those in the
+    voxels over the cap."""
+    outside = int(pts.shape[0]) - in_grid  # non-finite rows included (the voxelizer's rule 1)
+    here = int(pts.shape[0] - np.isfinite(pts).all(axis=1).sum()) if outside else 0
+    counts = {
+        "dropped_nonfinite": int(getattr(given, "dropped_nonfinite", 0)) + here,
+        "dropped_outside_grid": outside - here,
+        "dropped_over_cap": int(over_cap),
+    }
+    return counts | {"dropped": sum(counts.values())}
+
+
+def _to_stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 def _empty_result(timings: dict[str, float], stats: dict[str, int], note: str) -> Result:
@@ -70,11 +115,21 @@ def _empty_result(timings: dict[str, float], stats: dict[str, int], note: str) -
 class Pipeline:
     """An exported MSDNet (or R2LDM) folder, ready to run: ``Pipeline.from_dir(d)(points)``."""
 
-    def __init__(self, artifact: Artifact, provider: str = "cpu", threads: int | None = None):
+    def __init__(
+        self,
+        artifact: Artifact,
+        provider: str = "cpu",
+        threads: int | None = None,
+        notify: Callable[[str], None] | None = None,
+    ):
+        """``notify``: where ``provider`` ``auto[-bf16]`` says, in one line, that this load measured
+        the engines (None: stderr)."""
         self.artifact = artifact  # checked manifest + graph bytes
         self.provider = provider  # short provider name (cpu, auto[-bf16], openvino[-bf16], cuda, tensorrt)
         self.kind = artifact.kind  # "student" or "r2ldm"
         self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
+        # keep radar points whose head occupancy around them reaches this (None: keep none)
+        self.keep_threshold: float | None = artifact.keep_threshold
         self.sessions: dict[str, ort.InferenceSession] = {}
         threads_of: dict[str, int | None] = {}  # graph file -> intra-op threads
         self.graph_threads = threads_of  # kept for logs and tests
@@ -103,23 +158,30 @@ class Pipeline:
         self.sampler: SamplerSettings | None = None if block is None else sampler_settings(block)
         self._enc_spec = next(s for s in artifact.specs if s.file == onnx_spec.ENCODER.file)
         self._renoise: np.ndarray | None = None  # (K, 2) [a, b] of the last coefficients() call
+        self.last_over_cap = 0  # rows in the voxels over the max_voxels cap, last encoder_feeds() call
         self._allocate(device_of(provider))
         self.auto: AutoReport | None = None  # provider "auto": each graph's engine, its times and why
         if base_provider(provider) == AUTO:
             from msdnet.runtime.engine.provider_auto import choose_engines
-            from msdnet.runtime.engine.provider_head import choose_head
 
-            # may swap sessions for OpenVINO's
-            self.auto = choose_engines(self, threads_of, precision_of(provider))
-            self.auto = choose_head(self, self.auto, threads_of, precision_of(provider))
+            self.auto = choose_engines(self, threads_of, precision_of(provider))  # may swap in OpenVINO's
             self._allocate(device_of(provider))  # so bind the buffers again
             if self.auto.dense_head:
                 self.gate = None  # the dense reference is faster on these engines (provider_head)
+            line = self.auto.summary()
+            if line is not None:  # this load measured: say so once (the cache spares the next loads)
+                (notify or _to_stderr)(line)
 
     @classmethod
-    def from_dir(cls, path: str | Path, provider: str = "cpu", threads: int | None = None) -> Pipeline:
+    def from_dir(
+        cls,
+        path: str | Path,
+        provider: str = "cpu",
+        threads: int | None = None,
+        notify: Callable[[str], None] | None = None,
+    ) -> Pipeline:
         """Load and check an artifact folder (``msdnet-export`` output) and open its sessions."""
-        return cls(load_artifact(path), provider=provider, threads=threads)
+        return cls(load_artifact(path), provider=provider, threads=threads, notify=notify)
 
     # ------------------------------------------------------------------ buffers and bindings
 
@@ -195,15 +257,20 @@ class Pipeline:
             b.bind_ortvalue_input("features", self._x[src])
             self._sparse_bind.append(b)
 
-    def _head(self, final: int, thr: float) -> tuple[np.ndarray, np.ndarray, int]:
+    def _head(
+        self, final: int, thr: float, radar: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray | None]:
         """Head and decode stages on loop buffer ``final`` -> (points (M, 3), confidence (M,),
-        half-scale voxels decoded at full scale)."""
+        half-scale voxels decoded at full scale, confidence (K,) of the ``radar`` rows (K, 3) or
+        None without them)."""
+        grid = self.artifact.grid
         if self.gate is None:
             self._last_final = None  # sparse_head_outputs() is about the last call only
             self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
             self._timer("head")
-            pts, conf = decode_packed(self._occ[0], self._off[0], self.artifact.grid, thr)
-            return pts, conf, int(self._occ[0, 0].size)
+            pts, conf = decode_packed(self._occ[0], self._off[0], grid, thr)
+            sure = None if radar is None else radar_confidence_packed(radar, self._occ[0], grid)
+            return pts, conf, int(self._occ[0, 0].size), sure
         if not self._sparse_bind:
             raise MsdnetError(
                 onnx_spec.RECON_HEAD_SPARSE.file, "gate set but the artifact has no sparse head"
@@ -220,8 +287,10 @@ class Pipeline:
         self.sessions[onnx_spec.RECON_HEAD_SPARSE.file].run_with_iobinding(b)
         occ, off, vox, _ = b.get_outputs()
         self._timer("head")
-        pts, conf = decode_sparse(occ.numpy(), off.numpy(), vox.numpy(), self.artifact.grid, thr)
-        return pts, conf, int(vox.shape()[0])
+        occ_np, vox_np = occ.numpy(), vox.numpy()
+        pts, conf = decode_sparse(occ_np, off.numpy(), vox_np, grid, thr)
+        sure = None if radar is None else radar_confidence_sparse(radar, occ_np, vox_np, grid)
+        return pts, conf, int(vox.shape()[0]), sure
 
     def sparse_head_outputs(self) -> dict[str, np.ndarray]:
         """The last call's ``recon_head_sparse.onnx`` outputs as numpy (``onnx_spec.RECON_HEAD_SPARSE``:
@@ -255,13 +324,24 @@ class Pipeline:
 
     def encoder_feeds(self, pts: np.ndarray) -> tuple[dict[str, np.ndarray], int, int]:
         """Voxelize ``pts`` (N, C) and build every encoder rulebook -> (``encoder.onnx`` inputs,
-        points in grid, voxels); no inputs when there is no voxel."""
+        points in grid, voxels); no inputs when there is no voxel. The rows over the voxel cap
+        are kept in ``self.last_over_cap``."""
         vox = voxelize(pts, self.artifact.grid, self.artifact.inputs.max_voxels)
         n_vox, in_grid = int(vox.coords.shape[0]), pts.shape[0] - vox.dropped_out_of_range
+        self.last_over_cap = int(vox.dropped_over_cap)
         if n_vox == 0:
             return {}, in_grid, 0
         coords = batch_coords([vox.coords])  # (V_0, 4) int32 [b = 0, z, y, x]
         rb = build_encoder_rulebooks(coords, self.artifact.grid.shape_zyx, onnx_spec.NUM_DOWN)
+        if "voxel_counts" in self._enc_spec.inputs:  # the pair form (manifest encoder_form "pairs")
+            levels = sum(
+                name.startswith("down_") and name.endswith("_pairs_0") for name in self._enc_spec.inputs
+            )
+            pairs = {
+                "voxel_features": np.ascontiguousarray(vox.features, np.float32),
+                **pair_feeds(rb, levels),
+            }
+            return pairs, in_grid, n_vox
         feeds = {"voxel_features": vox.features, "subm_rules_0": rb.subm[0]}
         levels = sum(name.startswith("down_rules_") for name in self._enc_spec.inputs)
         for level in range(1, levels + 1):
@@ -309,6 +389,7 @@ class Pipeline:
         seed: int = 0,
         *,
         keep_radar: bool = False,
+        keep_threshold: float | None = None,
     ) -> Result:
         """Run one scan: points (N, C) float32 (manifest columns) or a PointCloud ->
         :class:`Result` with points (M, 3) float32 [x, y, z] and confidence (M,) float32.
@@ -321,10 +402,21 @@ class Pipeline:
         count ``stats["points_in_grid"]``, before the max_voxels cap), in input order, x y z only,
         confidence 1.0: points (M_model + K, 3), confidence (M_model + K,), and the first M_model
         rows are exactly the output without the flag (same seed). ``stats["radar_kept"]`` = K.
+
+        keep_threshold: None (default) takes ``Pipeline.keep_threshold`` (the manifest's
+        ``keep_radar_threshold``; None in older manifests: the rules above, byte for byte). With a
+        value in [0, 1]: the model's points are followed by the radar rows inside the grid box
+        whose confidence (``Result.radar_confidence``, float32) is >= the value, in input order,
+        x y z only, with that confidence (``stats["radar_confident"]`` rows); ``keep_radar``
+        then appends the other radar rows (confidence 1.0) after them, so the output without the
+        flag is again the first rows. ``stats["radar_kept"]``: the radar rows at the end.
         """
         thr = self.artifact.threshold if threshold is None else float(threshold)
         if not 0.0 < thr < 1.0:
             raise MsdnetError("threshold", f"must be in (0, 1), got {thr}")
+        keep_thr = self.keep_threshold if keep_threshold is None else float(keep_threshold)
+        if keep_thr is not None and not 0.0 <= keep_thr <= 1.0:
+            raise MsdnetError("keep_threshold", f"must be in [0, 1], got {keep_thr}")
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed: must be an integer >= 0 (the noise generator's seed), got {seed!r}")
         coeffs = self.coefficients(steps)
@@ -335,10 +427,13 @@ class Pipeline:
         self._timer("prepare")
         in_grid, n_vox = self._encode(pts)
         stats = {"points_in": int(pts.shape[0]), "points_in_grid": in_grid, "voxels": n_vox}
+        stats |= _drop_counts(points, pts, in_grid, self.last_over_cap)
         stats["steps"] = n_steps  # DDIM steps; "network_calls" counts the repeats too
         stats["network_calls"] = int(coeffs.shape[0])
-        if keep_radar:
+        if keep_radar or keep_thr is not None:
             stats["radar_kept"] = 0
+        if keep_thr is not None:
+            stats["radar_confident"] = 0
         if n_vox == 0:  # no row inside the grid box, so no radar point to keep either
             self._timer("voxelize")
             self._timings["total"] = time.perf_counter() - start
@@ -355,20 +450,30 @@ class Pipeline:
         self._timer("adapter")
         final = self._loop(coeffs, rng)
         self._timer("denoise")
-        out, conf, stats["head_voxels"] = self._head(final, thr)
+        radar = None
+        if keep_radar or keep_thr is not None:
+            radar = np.ascontiguousarray(pts[in_range_mask(pts, self.artifact.grid), :3])
+        out, conf, stats["head_voxels"], sure = self._head(final, thr, None if keep_thr is None else radar)
         n_model = len(out)
-        if keep_radar:
-            radar = pts[in_range_mask(pts, self.artifact.grid), :3]
-            stats["radar_kept"] = int(radar.shape[0])
-            out = np.ascontiguousarray(np.concatenate([out, radar]), dtype=np.float32)
-            conf = np.concatenate([conf, np.ones(radar.shape[0], np.float32)])
+        if radar is not None:
+            extra, extra_conf = [radar], [np.ones(radar.shape[0], np.float32)]
+            if sure is not None:
+                kept = sure >= np.float32(keep_thr)
+                stats["radar_confident"] = int(kept.sum())
+                extra, extra_conf = [radar[kept]], [sure[kept]]
+                if keep_radar:
+                    extra.append(radar[~kept])
+                    extra_conf.append(np.ones(int((~kept).sum()), np.float32))
+            stats["radar_kept"] = sum(len(t) for t in extra)
+            out = np.ascontiguousarray(np.concatenate([out, *extra]), dtype=np.float32)
+            conf = np.concatenate([conf, *extra_conf])
         self._timer("decode")
         self._timings["total"] = time.perf_counter() - start
         notes: tuple[str, ...] = ()
         if n_model == 0:
             tail = "empty output" if len(out) == 0 else f"output is the {len(out)} radar points only"
             notes = (f"no voxel above the threshold: {tail}",)
-        return Result(out, conf, self._timings, stats, notes)
+        return Result(out, conf, self._timings, stats, notes, sure)
 
     def _loop(self, coeffs: np.ndarray, rng: np.random.Generator | None = None) -> int:
         """Run the DDIM steps in place on the ping-pong buffers; -> index of the final buffer.

@@ -16,6 +16,12 @@ import numpy as np
 from msdnet.runtime.errors import MsdnetError
 
 XYZ = ("x", "y", "z")
+# the input rows the engine does not use, by reason: Result.stats / summary keys -> printed words
+DROP_REASONS = {
+    "dropped_nonfinite": "with NaN/Inf",
+    "dropped_outside_grid": "outside the grid",
+    "dropped_over_cap": "over the voxel cap",
+}
 
 
 def canonical_column(name: str) -> str:

@@ -6,24 +6,33 @@
 (called by every CLI before it writes into a folder) removes those whose process is gone. A
 failed write is one ``MsdnetError`` naming the output (``write_error``), and says when the disk
 is full.
+
+Every command shares two more steps: ``check_writable(path, kind)`` before any work (the place
+takes a file, proved by one probe; a killed run's temporaries there are removed; the
+``checks_outputs`` decorator runs it on a command's output options), and ``atomic_folder(path)``
+for a whole folder (built under a ``temp_name`` next to it, renamed when complete, removed on
+failure; a killed run's folder is removed by the next run's check or ``atomic_folder``).
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import os
 import re
 import secrets
 import shutil
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any, TypeVar
 
 from msdnet.runtime.errors import MsdnetError
 
 TEMP_PREFIX = ".msdnet-"  # every temporary file or folder msdnet writes starts with this
 _TEMP_RE = re.compile(r"^\.msdnet-(\d+)-[0-9a-f]+\..*\.tmp$")
 MAX_NAME_BYTES = 255  # file name limit of common file systems (ext4, xfs, btrfs, tmpfs)
+F = TypeVar("F", bound=Callable[..., Any])
 
 
 def temp_name(target_name: str, pid: int | None = None) -> str:
@@ -72,6 +81,87 @@ def clean_stale_temps(folder: str | Path) -> int:
                 entry.unlink()
             removed += 1
     return removed
+
+
+OUTPUT_KINDS = ("file", "folder", "into")  # what check_writable's ``kind`` may be
+
+
+def check_writable(path: str | Path, kind: str = "file") -> Path:
+    """Before any work: prove ``path`` can be written, or raise one MsdnetError naming it.
+
+    ``kind``: ``"file"``, a file written whole (an existing folder there is refused);
+    ``"folder"``, a folder written whole under a temporary name beside it and renamed
+    (``atomic_folder``; an existing file there is refused); ``"into"``, a folder that files are
+    written into (an existing file there is refused). The folder that receives the new entries
+    (``path`` for ``"into"``, else its parent) is probed with one temporary file; folders created
+    for the probe are removed with it, so a refused command leaves nothing behind. A killed run's
+    temporaries there are removed (``clean_stale_temps``). -> ``path``."""
+    if kind not in OUTPUT_KINDS:
+        raise ValueError(f"kind must be one of {OUTPUT_KINDS}, got {kind!r}")
+    target = Path(path)
+    if kind == "file" and target.is_dir():
+        raise MsdnetError(target, "is a folder; a file path is needed")
+    if kind != "file" and target.exists() and not target.is_dir():
+        raise MsdnetError(target, "exists and is not a folder")
+    place = target if kind == "into" else target.parent
+    missing = [d for d in (place, *place.parents) if not d.exists()]  # deepest first
+    probe = place / temp_name("write-check")
+    try:
+        place.mkdir(parents=True, exist_ok=True)
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        os.unlink(probe)
+    except OSError as err:
+        raise write_error(target, err) from None
+    finally:
+        for folder in missing:
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+    clean_stale_temps(place)
+    return target
+
+
+def checks_outputs(**kinds: str) -> Callable[[F], F]:
+    """Decorate a command function: before it runs, every keyword argument named in ``kinds``
+    that is not None is checked with ``check_writable(value, kind)``, so a command whose output
+    cannot be written fails in one line before any work (put it under ``one_line_errors``)."""
+    for kind in kinds.values():
+        if kind not in OUTPUT_KINDS:
+            raise ValueError(f"kind must be one of {OUTPUT_KINDS}, got {kind!r}")
+
+    def decorate(func: F) -> F:
+        @functools.wraps(func)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            for name, kind in kinds.items():
+                if kwargs.get(name) is not None:
+                    check_writable(kwargs[name], kind)
+            return func(*args, **kwargs)
+
+        return wrapper  # type: ignore[return-value]
+
+    return decorate
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | Path) -> Iterator[Path]:
+    """Yield a new temporary folder next to ``path`` (``temp_name``: pid-tagged); on success it
+    is renamed to ``path`` (which must not exist then), on any failure removed. A run killed
+    meanwhile leaves it behind and the next ``check_writable`` / ``clean_stale_temps`` of that
+    parent removes it. An OSError is one MsdnetError naming ``path``."""
+    target = Path(path)
+    tmp = target.parent / temp_name(target.name)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        clean_stale_temps(target.parent)
+        tmp.mkdir()
+    except OSError as err:
+        raise write_error(target, err) from None
+    try:
+        yield tmp
+        tmp.rename(target)
+    except OSError as err:
+        raise write_error(target, err) from None
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def write_error(path: str | Path, err: OSError) -> MsdnetError:

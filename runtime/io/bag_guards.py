@@ -11,11 +11,10 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.atomic import clean_stale_temps, temp_name, write_error
+from msdnet.runtime.io.atomic import check_writable, write_error
 
 
 def storage_of(bag: Path) -> str:
@@ -40,14 +39,11 @@ def storage_of(bag: Path) -> str:
 def prepare_bag_out(out: Path) -> None:
     """Before any work: ``out``'s folder exists and takes a file (one probe, removed); a killed
     run's temporary bags there are removed."""
-    probe = out.parent / temp_name("write-check")
+    check_writable(out, "folder")  # a ROS 2 bag is a folder, written beside and renamed
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-        os.unlink(probe)
     except OSError as err:
         raise write_error(out, err) from None
-    clean_stale_temps(out.parent)
 
 
 def bag_write_error(out: Path, err: Exception) -> MsdnetError:

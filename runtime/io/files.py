@@ -4,8 +4,11 @@ Reading checks sizes before allocating (a ``.bin`` must be a whole number of row
 ``max_points`` rows per file), drops rows with NaN/Inf and counts them in
 ``PointCloud.dropped_nonfinite``, and turns every kind of bad input into one
 ``MsdnetError(path, cause)``. Values beyond the float32 range count as non-finite (they would
-become Inf). A PCD whose header claims more (or fewer) points than it holds is refused, and so is
-a PLY whose body holds more vertices than its header states. An empty
+become Inf). A file must hold exactly what its header states (``check_held``, the one rule of
+every reader with a header, PointCloud2 messages included): a PCD whose ``POINTS`` (or
+``WIDTH`` x ``HEIGHT``) differs from the rows its body holds, a PLY whose vertex count differs
+from its body, an ``.npy`` whose shape differs from its bytes are refused, naming both counts;
+none is silently cut. An empty
 ``.bin`` (what a scan with no output point writes) reads back as zero rows when its layout is
 known (``columns=``, ``kind=`` or the path).
 
@@ -101,6 +104,21 @@ def cloud_from_array(path: str | Path, array: np.ndarray, names: tuple[str, ...]
     if dropped:
         pts = pts[finite]
     return PointCloud(pts, names, dropped_nonfinite=dropped, source=str(path))
+
+
+def check_held(path: str | Path | None, unit: str, stated: int, held: int, row_bytes: int = 0) -> None:
+    """The one rule of every reader with a header: the body holds exactly what the header states.
+
+    ``held``: the rows the body holds, or with ``row_bytes`` the body's size in bytes (rows of
+    ``row_bytes`` each, a partial row counted apart). MsdnetError naming both counts otherwise:
+    a header that understates its body would cut rows silently, one that overstates it would
+    read past the end."""
+    rest = 0
+    if row_bytes:
+        held, rest = divmod(held, row_bytes)
+    if held != stated or rest:
+        tail = f" and {rest} more bytes" if rest else ""
+        raise MsdnetError(path, f"header states {stated} {unit}, the data holds {held}{tail}")
 
 
 def _too_many(path: Path, n: int, max_points: int) -> None:
@@ -207,6 +225,11 @@ def _read_npy(path: Path, size: int, kind: str | None, cols, max_points: int):
             shape, _, dtype = np.lib.format.read_array_header_1_0(f)
         else:
             shape, _, dtype = np.lib.format.read_array_header_2_0(f)
+        body = size - f.tell()
+    if len(shape) >= 1 and not dtype.hasobject and dtype.itemsize:
+        rows = int(np.prod(shape[1:], dtype=np.int64)) * dtype.itemsize
+        if rows:
+            check_held(path, "rows", int(shape[0]), body, rows)
     if dtype.names is not None:  # structured array: one named field per column
         if len(shape) != 1:
             raise MsdnetError(path, f"structured array must be 1-D, got shape {shape}")
@@ -236,16 +259,26 @@ def _read_pcd(path: Path, size: int, kind: str | None, cols, max_points: int):
                 break
         if not lines or not lines[-1].startswith("DATA"):
             raise MsdnetError(path, "no PCD header (VERSION ... DATA lines)")
+        body_start = f.tell()
         meta = pypcd4.MetaData.parse_header(lines)
         _too_many(path, meta.points, max_points)
         if any(c != 1 for c in meta.count):
             raise MsdnetError(path, "PCD fields with COUNT > 1 are not supported")
+        if meta.width * meta.height != meta.points:
+            raise MsdnetError(
+                path,
+                f"header states WIDTH {meta.width} x HEIGHT {meta.height} points but POINTS {meta.points}",
+            )
+        if meta.data == "binary":
+            check_held(path, "points", meta.points, size - body_start, sum(meta.size))
+        elif meta.data == "ascii":
+            f.seek(body_start)
+            check_held(path, "points", meta.points, sum(1 for line in f if line.strip()))
         f.seek(0)
         pc = pypcd4.PointCloud.from_fileobj(f)
     names = tuple(canonical_column(n) for n in pc.fields)
     data = pc.numpy().astype(np.float64).reshape(-1, len(names))  # (N, C)
-    if data.shape[0] != meta.points:
-        raise MsdnetError(path, f"header claims {meta.points} points, the data holds {data.shape[0]}")
+    check_held(path, "points", meta.points, data.shape[0])
     return data, names
 
 
@@ -266,25 +299,23 @@ def _read_ply(path: Path, size: int, kind: str | None, cols, max_points: int):
 
 
 def _ply_holds_no_more(path: Path, size: int, header: plyfile.PlyData, body_start: int) -> None:
-    """Refuse a PLY whose body holds more vertices than its header states (plyfile reads the
-    stated count and ignores the rest): text, by non-blank lines; binary, by bytes (fixed-size
-    properties only)."""
+    """Refuse a PLY whose body holds more or fewer vertices than its header states (plyfile
+    reads the stated count and ignores the rest): text, by non-blank lines; binary, by bytes
+    (fixed-size properties only)."""
     elements, count = header.elements, header["vertex"].count
     others = [e for e in elements if e.name != "vertex"]
     if header.text:
         with open(path, "rb") as f:
             f.seek(body_start)
             lines = sum(1 for line in f if line.strip())
-        held = lines - sum(e.count for e in others)
-    else:
-        if any(isinstance(pr, plyfile.PlyListProperty) for e in elements for pr in e.properties):
-            return
-        row = {e.name: sum(np.dtype(pr.val_dtype).itemsize for pr in e.properties) for e in elements}
-        if not row["vertex"]:
-            return
-        held = (size - body_start - sum(e.count * row[e.name] for e in others)) // row["vertex"]
-    if held > count:
-        raise MsdnetError(path, f"header states {count} vertices, the body holds {held}")
+        check_held(path, "vertices", count, lines - sum(e.count for e in others))
+        return
+    if any(isinstance(pr, plyfile.PlyListProperty) for e in elements for pr in e.properties):
+        return
+    row = {e.name: sum(np.dtype(pr.val_dtype).itemsize for pr in e.properties) for e in elements}
+    if row["vertex"]:
+        body = size - body_start - sum(e.count * row[e.name] for e in others)
+        check_held(path, "vertices", count, body, row["vertex"])
 
 
 def write_cloud(path: str | Path, cloud: PointCloud, fmt: str | None = None) -> Path:

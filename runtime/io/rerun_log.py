@@ -30,7 +30,7 @@ import numpy as np
 from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.atomic import clean_stale_temps, temp_name, write_error
+from msdnet.runtime.io.atomic import check_writable, temp_name, write_error
 from msdnet.runtime.io.files import DENSE_COLUMNS, read_cloud
 
 RADAR_RGB = (214, 39, 40)
@@ -55,14 +55,11 @@ def check_path(path: str | Path) -> Path:
         raise MsdnetError(target, "--rerun writes a .rrd file; name it FILE.rrd")
     if target.is_dir():
         raise MsdnetError(target, "--rerun is a folder; name a FILE.rrd")
-    probe = target.parent / temp_name(target.name)
+    check_writable(target, "file")  # the check every command shares
     try:
         target.parent.mkdir(parents=True, exist_ok=True)
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-        os.unlink(probe)
     except OSError as err:
         raise write_error(target, err) from None
-    clean_stale_temps(target.parent)
     return target
 
 

@@ -11,7 +11,10 @@ field is one line naming the topic and the field; two fields of one name (or of 
 name feeding a column) are refused, naming the topic and the field. :func:`message_cloud` turns
 one serialized message into a PointCloud: rows with a non-finite value in a model column are
 dropped (as the file readers drop them), and a message of more than ``io.files.MAX_POINTS``
-points is refused as a file that size is, naming the message. :func:`make_pointcloud2` builds a
+points is refused as a file that size is, naming the message. A message must hold exactly what
+its header states (:func:`check_pointcloud2_size`, the readers' ``io.files.check_held`` rule):
+``data`` of other than ``height * row_step`` bytes is refused, never cut to the stated points.
+:func:`make_pointcloud2` builds a
 float32 PointCloud2 (point_step 4 C, little-endian, height 1); :func:`files_to_bag` writes
 point-cloud files as a ROS 2 bag, for trying ``--topic`` without a recorded bag.
 """
@@ -26,7 +29,7 @@ import numpy as np
 
 from msdnet.runtime.engine.pointcloud import canonical_column
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.files import MAX_POINTS, cloud_from_array
+from msdnet.runtime.io.files import MAX_POINTS, check_held, cloud_from_array
 
 POINTCLOUD2 = "sensor_msgs/msg/PointCloud2"
 STORAGES = ("sqlite3", "mcap")
@@ -96,21 +99,44 @@ def resolve_fields(msg: Any, columns: Sequence[str], mapping: dict[str, str], to
     return picked
 
 
+def check_pointcloud2_size(msg: Any) -> int:
+    """The bytes of one row of ``msg`` after checking that ``data`` holds exactly ``height`` rows
+    of ``row_step`` bytes, each with room for ``width`` points of ``point_step`` bytes and less
+    padding than one more point (a height-1 message whose ``row_step`` is below that uses
+    ``width * point_step``). ValueError otherwise: a message that says less than it holds is
+    not cut to what it says."""
+    step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
+    row = int(msg.row_step)
+    if height == 1 and row < width * step:
+        row = width * step
+    size = len(msg.data)
+    if width * step > row or size < height * row:
+        raise ValueError(f"data has {size} bytes, {height} rows of {width} x {step}-byte points need more")
+    if step and row - width * step >= step:
+        raise ValueError(
+            f"PointCloud2 row_step {row} bytes holds {row // step} points of {step} bytes, width says "
+            f"{width}; refusing to cut it to the stated points"
+        )
+    try:
+        check_held(None, f"bytes ({width * height} points: {height} x row_step {row})", height * row, size)
+    except MsdnetError as err:
+        raise ValueError(f"PointCloud2 {err.cause}; refusing to cut it to the stated points") from None
+    return row
+
+
 def pointcloud2_to_array(
     msg: Any, fields: Sequence[Any], label: str = "PointCloud2", max_points: int = MAX_POINTS
 ) -> np.ndarray:
     """PointCloud2 ``msg`` -> (N, len(fields)) float32, N = height * width, row padding skipped;
-    MsdnetError naming ``label`` when N exceeds ``max_points`` (the file readers' cap)."""
+    MsdnetError naming ``label`` when N exceeds ``max_points`` (the file readers' cap),
+    ValueError when ``data`` holds more or less than the header states
+    (:func:`check_pointcloud2_size`)."""
     order = ">" if msg.is_bigendian else "<"
     step, width, height = int(msg.point_step), int(msg.width), int(msg.height)
     if width * height > max_points:
         raise MsdnetError(label, f"{width * height} points exceeds the cap of {max_points} per scan")
-    row = int(msg.row_step) if height > 1 else width * step
+    row = check_pointcloud2_size(msg)
     data = np.asarray(msg.data, dtype=np.uint8)
-    if width * step > row or data.size < height * row:
-        raise ValueError(
-            f"data has {data.size} bytes, {height} rows of {width} x {step}-byte points need more"
-        )
     for f in fields:
         if f.offset + np.dtype(POINTFIELD_TYPES[f.datatype]).itemsize > step:
             raise ValueError(f"field {f.name!r} at offset {f.offset} overruns point_step {step}")

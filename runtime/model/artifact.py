@@ -76,6 +76,9 @@ class Artifact:
     # half-scale occupancy gate of the coarse-to-fine head (recon_head_sparse.onnx); None: the
     # artifact has no calibrated gate and the runtime uses the dense recon_head.onnx
     gate: float | None = None
+    # keep an input radar point as it is when the head's occupancy around its voxel reaches this
+    # (manifest ``keep_radar_threshold``; ``decode.radar_confidence_*``); None: keep none
+    keep_threshold: float | None = None
 
 
 def _need(obj: dict[str, Any], key: str, where: Path, kind: type | tuple[type, ...]) -> Any:
@@ -221,6 +224,10 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
     listed = [e.get("file") if isinstance(e, dict) else None for e in entries]
     optional = [s for s in onnx_spec.OPTIONAL_GRAPHS if s.file in listed]
     specs = (*specs, *optional)
+    form = manifest.get("encoder_form", "rulebook")  # absent in manifests before the pair form
+    if form not in onnx_spec.ENCODER_FORMS:
+        raise MsdnetError(where, f"encoder_form {form!r} is not one of {', '.join(onnx_spec.ENCODER_FORMS)}")
+    specs = tuple(onnx_spec.encoder_spec_of(s, form) if s.file == "encoder.onnx" else s for s in specs)
     needed = [s.file for s in specs]
     if sorted(map(str, listed)) != sorted(needed):
         missing = sorted(set(needed) - set(map(str, listed)))
@@ -236,6 +243,11 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
         if not optional or not isinstance(gate, (int, float)) or not 0.0 <= gate < 1.0:
             raise MsdnetError(where, f"gate {gate!r} needs recon_head_sparse.onnx and a value in [0, 1)")
         gate = float(gate)
+    keep = manifest.get("keep_radar_threshold")
+    if keep is not None:
+        if isinstance(keep, bool) or not isinstance(keep, (int, float)) or not 0.0 <= keep <= 1.0:
+            raise MsdnetError(where, f"keep_radar_threshold {keep!r} must be a number in [0, 1]")
+        keep = float(keep)
     return Artifact(
         root=root,
         manifest=manifest,
@@ -247,4 +259,5 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
         specs=specs,
         graphs=graphs,
         gate=gate,
+        keep_threshold=keep,
     )

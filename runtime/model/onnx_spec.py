@@ -76,6 +76,34 @@ ENCODER_QUARTER = _encoder_spec(2)
 R2LDM_PUBLISHED_GRAPHS = (ENCODER_QUARTER, R2LDM_STEP, RECON_HEAD)
 
 
+ENCODER_FORMS = ("rulebook", "pairs")  # manifest "encoder_form"; absent: rulebook
+PAIR_GROUPS = {"subm": 1, "down": 1}  # tap groups per layer kind (runtime.engine.pairs)
+
+
+def encoder_pairs_spec(levels: int = NUM_DOWN) -> GraphSpec:
+    """``encoder.onnx`` in the pair form (runtime.engine.pairs): voxel_features (V_0, F) float32,
+    voxel_counts (levels + 1,) int64 V_l, per conv layer and tap group ``<layer>_pairs_<g>``
+    (2, taps, P) int64 [input rows; output rows], bev_pairs (2, D8, P) int64 -> F^S (1, C, H, W)."""
+    inputs = ["voxel_features", "voxel_counts"]
+    axes: dict[str, dict[int, str]] = {"voxel_features": {0: "V_0"}}
+    layers = ["subm_0"] + [f"{kind}_{level}" for level in range(1, levels + 1) for kind in ("down", "subm")]
+    for layer in layers:
+        for g in range(PAIR_GROUPS[layer.split("_")[0]]):
+            name = f"{layer}_pairs_{g}"
+            inputs.append(name)
+            axes[name] = {2: f"P_{layer}_{g}"}
+    inputs.append("bev_pairs")
+    axes["bev_pairs"] = {2: "P_bev"}
+    return GraphSpec("encoder.onnx", tuple(inputs), ("bev_features",), axes)
+
+
+def encoder_spec_of(spec: GraphSpec, form: str) -> GraphSpec:
+    """The encoder contract ``spec`` (rulebook form, any levels) in ``form``."""
+    if form == "rulebook":
+        return spec
+    return encoder_pairs_spec(sum(name.startswith("down_rules_") for name in spec.inputs))
+
+
 def graphs_of(kind: str, sampler: object, by_kind: dict[str, tuple[GraphSpec, ...]]) -> tuple[GraphSpec, ...]:
     """The required graphs of a ``kind`` artifact: ``by_kind[kind]``, or the published R2LDM's
     when the manifest names a sampler (only R2LDM has one)."""

@@ -9,6 +9,7 @@ import click
 from tqdm import tqdm
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.sim.rigs import SIM_RIGS
 from msdnet.runtime.sim.sequence import SequenceSim
 from msdnet.runtime.sim.trajectory import FRAME_DT, loop_closures
@@ -122,6 +123,7 @@ def simulate_dataset(
     "read it with --dataset sim-astyx).",
 )
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def simulate(out: Path, sequences: int, frames: int, seed: int, overwrite: bool, rig: str) -> None:
     """Simulate paired LiDAR / 4D-radar street sequences in the View-of-Delft layout."""
     start = time.perf_counter()

@@ -36,14 +36,13 @@ class LightDenoiser(nn.Module):
     The time embedding is projected to C and added per channel, then two residual bottlenecks
     (C -> cfg.denoiser_hidden -> C) and an output head (GroupNorm, SiLU, 1x1 conv). The head is
     pointwise because it runs T_m times per frame: a 3x3 head (C x C x 9) would cost more than both
-    bottlenecks together (paper preset: 0.47 of 0.81 GFLOP per step); the bottlenecks' 3x3 convs
+    bottlenecks together; the bottlenecks' 3x3 convs
     already give each step a 5x5 receptive field.
 
     Output: ``eps_hat = sqrt(1 - abar_t) x_t + head(...)``, the head zero-initialised. On unit-
-    variance latents (training/latent.py) ``sqrt(1 - abar_t) x_t`` is the best linear guess of eps
-    (its MSE is abar_t), so the network learns only what the latent structure adds. Measured on
-    the sim lite student: without this skip the light denoiser's eps-MSE stayed at 0.96 for every
-    t after 5 epochs, above the linear guess's 0.40 (docs/training.md).
+    variance latents (training/models/latent.py) ``sqrt(1 - abar_t) x_t`` is the best linear guess of eps
+    (its MSE is abar_t), so the network learns only what the latent structure adds; without this
+    skip the light denoiser stays above the linear guess's error (docs/training.md).
     """
 
     def __init__(self, cfg: ModelConfig) -> None:

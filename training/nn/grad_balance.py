@@ -1,10 +1,10 @@
 """How Eq. 14 (and the reconstruction loss) reach the light denoiser's weights through the DDIM loop.
 
 MSDNet's Eq. 15 trains the denoiser on Eq. 10 (predict the noise) and, through the loop, on
-Eq. 14 (the loop's output should be the teacher's feature) at once. Measured here (docs/
-training.md): left alone, the loop's gradient on the denoiser is 120-640x Eq. 10's and the
-denoiser stops predicting noise; detached (the 2026-12 recipe), the loop stops paying. This
-module gives the training loop the rules in between (``LossWeights.denoiser_grad*``):
+Eq. 14 (the loop's output should be the teacher's feature) at once. Left alone, the loop's
+gradient on the denoiser is orders of magnitude larger than Eq. 10's and the denoiser stops
+predicting noise; detached, the loop stops paying (docs/training.md). This module gives the
+training loop the rules in between (``LossWeights.denoiser_grad*``):
 
 - ``steps``: the loop's gradient reaches the weights only through its last ``steps`` DDIM steps
   (truncated back-propagation; the earlier steps run with detached weights, their activations

@@ -1,17 +1,17 @@
 """R2LDM's latent diffusion U-Net (R2LDM Sec. III-C) and its exportable DDIM step.
 
-A DDPM-style U-Net over unit-variance BEV latents (training/latent.py). Inputs: x_t (B, C, H, W),
+A DDPM-style U-Net over unit-variance BEV latents (training/models/latent.py). Inputs: x_t (B, C, H, W),
 the step t and the radar condition c = F_r^S (B, C, H, W); output eps_hat (B, C, H, W).
 
 Conditioning (concatenation, R2LDM Tab. V b), at every level: c is normalised per sample
-(GroupNorm: the raw F_r^S has std ~0.03 against x_t's 1, and an audit of the 2026-11 model found
-eps-MSE 0.713 with the frame's own condition, another frame's, or zeros alike), concatenated to x_t
+(GroupNorm: the raw F_r^S is far smaller than x_t, and unnormalised the U-Net learns to ignore
+it; docs/training.md), concatenated to x_t
 at the input, and projected to ``cfg.r2ldm_cond_channels`` channels that are average-pooled to each
 level's resolution and concatenated to the input of every residual block.
 
 Widths: ``cfg.r2ldm_channels`` per level, the first at least 2C, so the input convolution (2C in)
-and the output convolution (C out) do not squeeze the noise through a narrower map (a 32-wide
-U-Net plateaued at eps-MSE 0.54, above the 0.28 of the linear guess below). Each level has
+and the output convolution (C out) do not squeeze the noise through a narrower map (a narrower
+U-Net does worse than the linear guess below). Each level has
 ``num_res_blocks`` residual blocks with the time embedding added per channel and a stride-2 3x3
 conv between levels; the middle has a residual block and self-attention at the lowest resolution;
 the decoder has ``num_res_blocks + 1`` blocks per level fed by skips (DDPM). Upsampling is
@@ -19,12 +19,12 @@ nearest x2 cropped to the skip's size, so odd sizes work (lite: 20 -> 10 -> 20).
 
 Output: ``eps_hat = sqrt(1 - abar_t) x_t + out(...)``, the output convolution zero-initialised (as
 :class:`~msdnet.training.nn.denoiser.LightDenoiser`): on unit-variance latents
-``sqrt(1 - abar_t) x_t`` is the best linear guess of eps (MSE abar_t, 0.28 averaged over t), so
+``sqrt(1 - abar_t) x_t`` is the best linear guess of eps (its MSE is abar_t), so
 training starts there and the network learns what the latent structure and the radar add.
 
-The step (:class:`R2LDMStep`) clips the x0 estimate to ``+-cfg.r2ldm_x0_clip`` (R2LDM samples from
-pure noise: at t = T the estimate divides by sqrt(abar_T) = 0.0063, and an unclipped 2026-11
-sampler ended at latent std ~114 against the data's ~1).
+The step (:class:`R2LDMStep`) clips the x0 estimate to ``+-cfg.r2ldm_x0_clip``: R2LDM samples from
+pure noise, and near t = T the estimate divides by the tiny sqrt(abar_T), so an unclipped sampler
+drifts far from the unit-variance latents.
 """
 
 from __future__ import annotations

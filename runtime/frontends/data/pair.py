@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 
 
 @click.command("pair", context_settings={"help_option_names": ["-h", "--help"]})
@@ -23,6 +24,7 @@ from msdnet.runtime.errors import MsdnetError, one_line_errors
 )
 @click.option("--odom-topic", help="nav_msgs/Odometry topic for poses [/tf, else any odometry topic].")
 @one_line_errors
+@checks_outputs(out="folder")  # before any work
 def pair(
     bag: Path,
     radar_topic: str,

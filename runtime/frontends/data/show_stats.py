@@ -8,6 +8,7 @@ from tqdm import tqdm
 
 from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES, open_dataset
 from msdnet.runtime.io.datasets.preprocess import lidar_ground, preprocess_frame
 from msdnet.runtime.io.datasets.stats import TARGETS, compute_stats, format_stats
@@ -26,6 +27,7 @@ PRESET_CHOICE = click.Choice(sorted(GRID_PRESETS))
 @click.option("--radar-frames", type=click.IntRange(min=1), default=1, show_default=True)
 @click.option("--keep-ground", is_flag=True, help="Skip ground removal.")
 @one_line_errors
+@checks_outputs(out="file")  # before any work
 def show(
     dataset: str,
     data: str,

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.frontends.densify import DensifyOptions, densify
 from msdnet.runtime.io.atomic import temp_name, write_error
@@ -166,8 +167,9 @@ def _run_message(
     try:
         start = time.perf_counter()
         msg, cloud = message_cloud(reader.deserialize, raw, pipe.columns, mapping, label)
-        row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
+        row.update(points_in=len(cloud), dropped_nonfinite=cloud.dropped_nonfinite)
         res = densify(pipe, cloud, options)
+        row.update({k: res.stats[k] for k in DROP_REASONS})  # every row not used, by reason
         dense = np.concatenate([res.points, res.confidence[:, None]], axis=1)  # (M, 4)
         stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
         out = make_pointcloud2(store, dense, DENSE_COLUMNS, stamp, msg.header.frame_id)

@@ -5,23 +5,29 @@ format ``runtime/io/files`` reads. Each output is ``OUT/<input stem>.<format>`` 
 ``x y z confidence`` (radar frame, metres; confidence = occupancy). A ``.bin`` is read with
 ``--layout`` / ``--columns``, else with the model's training layout (``runtime/io/layouts``). One bad
 file does not stop the others: the summary names it and the exit code is 1. Bad arguments exit 2
-with one line.
-``--keep-radar`` (off by default) appends the input radar points inside the grid box to every
-output, confidence 1 (``Pipeline.__call__(keep_radar=True)``); by default the output is the model's.
+with one line; an option that does not apply to the inputs is refused, or noted where it applies to
+some of them (``frontends/infer/option_use``).
+The output is the model's decoded points plus, where the manifest has a keep rule
+(``keep_radar_threshold``), the input radar points its head finds support for.
+``--keep-radar`` (off by default) appends every other input radar point inside the grid box too,
+confidence 1 (``Pipeline.__call__(keep_radar=True)``).
 
 Faults: ``--out`` must be a writable folder that holds no input (checked once, up front); a
 killed run leaves no worker process (each worker exits when its parent is gone) and the next
-run removes its temporary files; ``--skip-existing`` resumes a batch. Rows with NaN/Inf (or
-values beyond float32) are dropped and counted per file and in the summary. Same seed, same
-bytes: with the cpu provider, the same model, onnxruntime build and CPU, outputs do not depend
+run removes its temporary files; ``--skip-existing`` resumes a batch. Rows the engine does not
+use (NaN/Inf or values beyond float32, outside the grid, over the voxel cap) are dropped and
+counted by reason per file and in the summary. Same seed, same
+bytes: with ``--provider cpu``, the same model, onnxruntime build and CPU, outputs do not depend
 on ``--workers`` or ``--threads`` (``--threads`` is kept as given in every worker; unset, each of
 N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --workers 1/2.
 ``--trusted-key PUB`` refuses a model whose ``manifest.sig`` is missing or not by that key
 (``runtime/model/signing``).
 
-``--provider auto`` (``runtime/engine/provider_auto``) runs each graph on whichever of onnxruntime and
-OpenVINO measured faster here, measured once per model, CPU and library versions and cached;
-``-v`` prints the picks and times. Its outputs are within the export tolerances of ``cpu``'s, except
+``--provider auto``, the default (``runtime/engine/provider_auto``), runs each graph on whichever
+installed f32 engine, onnxruntime or OpenVINO, measured faster here: measured by the first run (a
+few seconds, said in one line on stderr), then cached per model, CPU and library versions; ``-v``
+prints the picks, times and cache notes. Without OpenVINO it is ``cpu``. Its outputs are within
+the export tolerances of ``cpu``'s, except
 where the manifest has a gate and the dense head is the faster head here (``runtime/engine/provider_head``):
 auto then runs the dense head, the reference the gated head approximates, and decodes the few points
 the gate drops too. ``--provider auto-bf16`` lets OpenVINO compute in bfloat16 (CPUs with bf16
@@ -57,6 +63,7 @@ from msdnet.runtime.frontends.infer.files import (
     summary,
 )
 from msdnet.runtime.frontends.infer.guards import check_out, clamp_workers, prepare_out, usable_cores
+from msdnet.runtime.frontends.infer.option_use import check_option_use
 from msdnet.runtime.frontends.model_args import check_model_options, resolve_model
 from msdnet.runtime.io.files import DENSE_COLUMNS, WRITE_FORMATS
 from msdnet.runtime.io.layouts import LAYOUTS, resolve_bin_columns
@@ -76,7 +83,8 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 @click.option(
     "--keep-radar",
     is_flag=True,
-    help="Output = model points + the input radar points in the grid (confidence 1). Off: model only.",
+    help="Also output every input radar point in the grid (confidence 1), not only those the "
+    "model's keep rule keeps. Off: the model's output.",
 )
 @click.option(
     "--workers", type=click.IntRange(min=1), default=1, show_default=True, help="Processes (<= CPU cores)."
@@ -89,18 +97,18 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 )
 @click.option(
     "--provider",
-    default="cpu",
+    default="auto",
     show_default=True,
-    help="cpu (byte-reproducible), cpu-shared (onnxruntime with one thread pool for every graph), "
-    "auto (per graph the faster of onnxruntime and OpenVINO, and the faster head), auto-bf16 "
-    "(the same with OpenVINO in bfloat16: fastest on CPUs with bf16 units), openvino, openvino-bf16, "
-    "cuda or tensorrt.",
+    help="auto (per graph the faster installed f32 engine, onnxruntime or OpenVINO, and the faster "
+    "head; measured on the first run, then cached), cpu (onnxruntime: byte-reproducible), cpu-shared "
+    "(onnxruntime with one thread pool for every graph), auto-bf16 (auto with OpenVINO in bfloat16: "
+    "fastest on CPUs with bf16 units), openvino, openvino-bf16, cuda or tensorrt.",
 )
 @click.option(
     "-v",
     "--verbose",
     is_flag=True,
-    help="With --provider auto[-bf16]: print each graph's engine and the head pick.",
+    help="With --provider auto[-bf16]: print each graph's engine, the head pick and cache notes.",
 )
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
 @click.option(
@@ -171,6 +179,8 @@ def main(
     model_dir = resolve_model(model)
     artifact = check_model_options(model_dir, trusted_key, provider, threshold, steps)
     columns, _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
+    mode = "topic" if topic is not None else "dataset" if dataset is not None else "files"
+    check_option_use(click.get_current_context(), inputs, mode, provider, lambda s: click.echo(s, err=True))
     options = DensifyOptions(  # the one set of options every mode (and every worker) runs with
         steps=steps,
         threshold=threshold,
@@ -226,6 +236,10 @@ def main(
     workers = clamp_workers(workers, len(jobs))
     if threads is None and workers > 1:
         threads = max(1, usable_cores() // workers)  # outputs do not depend on it
+    if threads is None and ray_address is not None:
+        from msdnet.runtime.frontends.infer.ray_batch import DEFAULT_THREADS
+
+        threads = DEFAULT_THREADS  # the actors' threads: their engine picks are the ones made here
     auto_pipe = _announce_auto(artifact, provider, threads, verbose)  # workers then read its cache
     rows = run_files(
         artifact,
@@ -257,7 +271,7 @@ def _announce_auto(artifact: Any, provider: str, threads: int | None, verbose: b
         return None
     from msdnet.runtime.engine.pipeline import Pipeline
 
-    pipe = Pipeline(artifact, provider=provider, threads=threads)
+    pipe = Pipeline(artifact, provider=provider, threads=threads, notify=lambda s: click.echo(s, err=True))
     if verbose:
         click.echo("\n".join(pipe.auto.lines()), err=True)
     return pipe

@@ -8,7 +8,8 @@ dense cloud cropped the same way (``benchmarks.quality.suite.crop_to_grid``). Th
 denser and how much closer to the LiDAR the output is than the radar, and
 ``OUT/comparison.json`` keeps every frame's figures. With ``options.keep_radar`` (``--keep-radar``)
 the output, and so every "dense" figure, is the model's points plus the radar points in the grid;
-``comparison.json`` then says ``"keep_radar": true``.
+``comparison.json`` then says ``"keep_radar": true``. Every radar row the engine did not use is
+counted per frame (``dropped_*``, ``pointcloud.DROP_REASONS``) and in the summary's total.
 
 A frame that cannot be loaded or run (a broken file, a bad calibration) does not stop the run:
 it is reported (``failed`` in ``comparison.json``, FAILED lines in the summary, exit 1) and the
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import json
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,7 @@ from tqdm import tqdm
 
 from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.frontends.densify import DensifyOptions, densify
 from msdnet.runtime.io.atomic import atomic_output
@@ -53,14 +55,17 @@ class FrameComparison:
     radar_fscore: float  # F-score of the radar at FSCORE_AT metres
     dense_fscore: float  # F-score of the output at FSCORE_AT metres
     seconds: float  # pipeline time of the frame
+    dropped_nonfinite: int = 0  # radar rows with NaN/Inf (pointcloud.DROP_REASONS)
+    dropped_outside_grid: int = 0  # finite radar rows outside the grid box
+    dropped_over_cap: int = 0  # radar rows in the voxels over the max_voxels cap
 
 
 def compare_frame(
     frame_id: str, radar: np.ndarray, dense: np.ndarray, lidar: np.ndarray, grid: GridConfig, seconds: float
 ) -> FrameComparison:
     """Score radar and output (N, >=3) [x, y, z, ...] against the LiDAR (K, 3), radar frame."""
-    from msdnet.benchmarks.metrics import chamfer_distance, fscore
-    from msdnet.benchmarks.quality.suite import crop_to_grid
+    from msdnet.runtime.metrics.cloud import chamfer_distance, fscore
+    from msdnet.runtime.metrics.crop import crop_to_grid
 
     r, d = crop_to_grid(radar, grid), crop_to_grid(dense, grid)
     ref = np.asarray(lidar, dtype=np.float32)[:, :3]
@@ -94,6 +99,9 @@ def summary_lines(rows: list[FrameComparison], model_name: str) -> list[str]:
         closer = f"{m['dense_cd']:.3f} m ({m['radar_cd'] / m['dense_cd']:.1f}x closer)"
     else:
         closer = "no output points (try a lower --threshold)"
+    totals = {k: sum(getattr(r, k) for r in rows) for k in DROP_REASONS}
+    dropped = ", ".join(f"{n} {DROP_REASONS[k]}" for k, n in totals.items() if n)
+    tail = [f"  dropped: radar rows not used: {dropped}"] if dropped else []
     return [
         f"{len(rows)} frames, median {np.median([r.seconds for r in rows]):.3f} s/frame; "
         "per frame inside the grid and field of view:",
@@ -101,6 +109,7 @@ def summary_lines(rows: list[FrameComparison], model_name: str) -> list[str]:
         f"({dens:.1f}x; LiDAR {m['lidar_points']:.0f})",
         f"  closer:  Chamfer distance to LiDAR {m['radar_cd']:.3f} m -> {closer}; "
         f"F-score@{FSCORE_AT:g} m {m['radar_fscore']:.2f} -> {m['dense_fscore']:.2f}",
+        *tail,
     ]
 
 
@@ -160,4 +169,5 @@ def _run_frame(
             (frame.radar.xyz, "#d62728", "radar", 6.0),
         ]
         render_bev(dst.with_suffix(".png"), layers, grid, f"{dataset} {fid}")
-    return compare_frame(fid, frame.radar.xyz, res.points, frame.lidar.xyz, grid, seconds)
+    row = compare_frame(fid, frame.radar.xyz, res.points, frame.lidar.xyz, grid, seconds)
+    return replace(row, **{k: int(res.stats[k]) for k in DROP_REASONS})

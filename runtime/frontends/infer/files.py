@@ -5,7 +5,9 @@ Ray actors (``frontends/infer/ray_batch``); every way runs ``worker._run_one`` p
 - ``output_paths``: ``OUT/<stem>.<format>`` per input, refusing name clashes and inputs overwritten;
 - ``pending_jobs``: the (input, output) pairs left to do (``--skip-existing`` resumes a batch);
 - ``run_files``: the jobs run one way or another -> one summary row per file, in input order;
-- ``summary``: the closing lines and the exit code (``EXIT_SOME_FAILED`` when a file failed).
+- ``summary``: the closing lines and the exit code (``EXIT_SOME_FAILED`` when a file failed),
+  with every input row the engine did not use counted by reason, per file and in total
+  (``drop_text``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.frontends.densify import DensifyOptions
 from msdnet.runtime.frontends.infer.worker import WORKER, _init_worker, _run_one
@@ -121,17 +124,16 @@ def summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple[
     ok = len(rows) - len(failed)
     p_in = sum(r["points_in"] for r in rows if "error" not in r)
     p_out = sum(r["points_out"] for r in rows if "error" not in r)
-    dropped = [r for r in rows if r.get("dropped")]
+    totals = {k: sum(r.get(k, 0) for r in rows if "error" not in r) for k in DROP_REASONS}
+    dropped = [r for r in rows if "error" not in r and any(r.get(k) for k in DROP_REASONS)]
     per = f", {wall / max(ok, 1):.3f} s/file" if ok else ""
     skip = f", {skipped} skipped (output exists)" if skipped else ""
-    drop = f" ({sum(r['dropped'] for r in dropped)} NaN/Inf rows dropped)" if dropped else ""
+    drop = f" (dropped {drop_text(totals)})" if any(totals.values()) else ""
     lines = [
         f"files: {ok} ok, {len(failed)} failed{skip}; points in {p_in}{drop}, out {p_out}; "
         f"time {wall:.2f} s{per}"
     ]
-    lines += [
-        f"  dropped: {r['file']}: {r['dropped']} rows with NaN/Inf (or beyond float32)" for r in dropped
-    ]
+    lines += [f"  dropped: {r['file']}: {drop_text(r, per_file=True)}" for r in dropped]
     lines += [
         f"  {'note' if r['points_out'] else 'empty'}: {r['file']}: {'; '.join(r['notes'])}"
         for r in rows
@@ -139,3 +141,12 @@ def summary(rows: list[dict[str, Any]], wall: float, skipped: int = 0) -> tuple[
     ]
     lines += [f"  FAILED {r['error']}" for r in failed]
     return "\n".join(lines), (EXIT_SOME_FAILED if failed else 0)
+
+
+def drop_text(counts: dict[str, Any], per_file: bool = False) -> str:
+    """``counts`` (``DROP_REASONS`` keys) -> ``"8 with NaN/Inf, 40 outside the grid"``, the
+    reasons with a count only; ``per_file``: ``"3 rows with NaN/Inf (or beyond float32), ..."``."""
+    parts = [f"{counts[k]} {words}" for k, words in DROP_REASONS.items() if counts.get(k)]
+    if per_file and counts.get("dropped_nonfinite"):
+        parts[0] = f"{counts['dropped_nonfinite']} rows with NaN/Inf (or beyond float32)"
+    return ", ".join(parts)

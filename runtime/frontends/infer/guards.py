@@ -24,7 +24,7 @@ from pathlib import Path
 import click
 
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.atomic import clean_stale_temps, temp_name, write_error
+from msdnet.runtime.io.atomic import check_writable, write_error
 
 PARENT_POLL_S = 0.2  # how often a worker checks that its parent is alive
 
@@ -40,16 +40,14 @@ def check_out(out: Path, inputs: Sequence[Path]) -> None:
             raise MsdnetError(out, f"--out is the folder of input {item}; choose another --out")
 
 
-def prepare_out(out: Path) -> int:
-    """Create ``out``, check it is writable, clean a killed run's temporaries; -> how many."""
-    probe = out / temp_name("write-check")
+def prepare_out(out: Path) -> None:
+    """Check ``out`` is writable and clean a killed run's temporaries there
+    (``io.atomic.check_writable``, the check every command shares), then create it."""
+    check_writable(out, "into")
     try:
         out.mkdir(parents=True, exist_ok=True)
-        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
-        os.unlink(probe)
     except OSError as err:
         raise write_error(out, err) from None
-    return clean_stale_temps(out)
 
 
 def usable_cores() -> int:

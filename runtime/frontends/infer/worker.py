@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.frontends.densify import DensifyOptions, densify
 from msdnet.runtime.frontends.infer.guards import watch_parent
@@ -36,12 +37,14 @@ def _init_worker(
 def _run_one(src: str, dst: str) -> dict[str, Any]:
     """Process one file in this process's pipeline; never raises (errors are reported)."""
     pipe, options = WORKER["pipe"], WORKER["options"]
-    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0, "dropped": 0}
+    row: dict[str, Any] = {"file": src, "points_in": 0, "points_out": 0, "seconds": 0.0}
+    row |= dict.fromkeys(DROP_REASONS, 0)  # the rows not used, by reason (Result.stats)
     try:
         start = time.perf_counter()
         cloud = read_cloud(src, columns=columns_for(src, options.bin_columns))
-        row.update(points_in=len(cloud), dropped=cloud.dropped_nonfinite)
+        row.update(points_in=len(cloud), dropped_nonfinite=cloud.dropped_nonfinite)
         res = densify(pipe, cloud, options)
+        row.update({k: res.stats[k] for k in DROP_REASONS})
         write_dense(dst, res.points, res.confidence, options.fmt)
         if options.png:
             from msdnet.runtime.io.pictures import render_bev

@@ -8,9 +8,10 @@ definitions field for field, so their CDR bytes are those of a ROS 2 node's mess
 
 import re
 from dataclasses import dataclass
+from typing import Any
 
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import int32, sequence, uint8, uint32
+from cyclonedds.idl.types import byte, float32, float64, int32, sequence, uint8, uint32
 
 from msdnet.runtime.errors import MsdnetError
 
@@ -59,6 +60,76 @@ class PointCloud2(IdlStruct, typename="sensor_msgs::msg::dds_::PointCloud2_"):
     is_dense: bool
 
 
+@dataclass
+class RadarReturn(IdlStruct, typename="radar_msgs::msg::dds_::RadarReturn_"):
+    """radar_msgs/msg/RadarReturn: one return in polar form (metres, radians, m/s, dB); azimuth
+    positive anticlockwise (REP 103), elevation positive up."""
+
+    range: float32
+    azimuth: float32
+    elevation: float32
+    doppler_velocity: float32
+    amplitude: float32
+
+
+@dataclass
+class RadarScan(IdlStruct, typename="radar_msgs::msg::dds_::RadarScan_"):
+    """radar_msgs/msg/RadarScan (the array is ``returns``, as published since mid-2020)."""
+
+    header: Header
+    returns: sequence[RadarReturn]
+
+
+@dataclass
+class Tier4Float64Stamped(IdlStruct, typename="tier4_debug_msgs::msg::dds_::Float64Stamped_"):
+    """tier4_debug_msgs/msg/Float64Stamped (deprecated by Autoware, still watched by older stacks)."""
+
+    stamp: Time
+    data: float64
+
+
+@dataclass
+class AutowareFloat64Stamped(IdlStruct, typename="autoware_internal_debug_msgs::msg::dds_::Float64Stamped_"):
+    """autoware_internal_debug_msgs/msg/Float64Stamped (same fields as the tier4 type)."""
+
+    stamp: Time
+    data: float64
+
+
+DEBUG_TYPES = {  # the debug_msgs_type parameter -> the struct of its Float64Stamped
+    "tier4_debug_msgs": Tier4Float64Stamped,
+    "autoware_internal_debug_msgs": AutowareFloat64Stamped,
+}
+
+
+@dataclass
+class KeyValue(IdlStruct, typename="diagnostic_msgs::msg::dds_::KeyValue_"):
+    """diagnostic_msgs/msg/KeyValue."""
+
+    key: str
+    value: str
+
+
+@dataclass
+class DiagnosticStatus(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticStatus_"):
+    """diagnostic_msgs/msg/DiagnosticStatus; ``level`` is ``byte`` (IDL octet): OK 0, WARN 1,
+    ERROR 2, STALE 3."""
+
+    level: byte
+    name: str
+    message: str
+    hardware_id: str
+    values: sequence[KeyValue]
+
+
+@dataclass
+class DiagnosticArray(IdlStruct, typename="diagnostic_msgs::msg::dds_::DiagnosticArray_"):
+    """diagnostic_msgs/msg/DiagnosticArray."""
+
+    header: Header
+    status: sequence[DiagnosticStatus]
+
+
 def dds_topic(ros_name: str) -> str:
     """ROS 2 topic name -> DDS topic name (``/radar/points`` -> ``rt/radar/points``);
     MsdnetError naming ``--topic`` for a name ROS 2 would refuse."""
@@ -83,3 +154,40 @@ def _data_as_bytes(struct: type) -> None:
 
 
 _data_as_bytes(PointCloud2)
+
+
+def _returns_as_array(struct: type) -> None:
+    """Serialize ``RadarScan.returns`` from / to a (N, 5) float32 array [range, azimuth,
+    elevation, doppler_velocity, amplitude] in one copy instead of one struct per return. The
+    wire format is unchanged: a uint32 count, then five 4-byte floats per return (a RadarReturn
+    is five float32, so no padding; XCDR1 and XCDR2 alike); the type object still says
+    ``sequence<radar_msgs::msg::RadarReturn>``. Serializing also takes a list of RadarReturn."""
+    import numpy as np
+    from cyclonedds.idl._machinery import BytesMachine
+
+    class ReturnsMachine(BytesMachine):
+        def serialize(self, buffer: Any, value: Any, *args: Any, **kwargs: Any) -> None:
+            if not isinstance(value, np.ndarray):
+                value = [[r.range, r.azimuth, r.elevation, r.doppler_velocity, r.amplitude] for r in value]
+            arr = np.asarray(value, dtype=buffer._endian + "f4").reshape(-1, 5)
+            buffer.align(4)
+            buffer.write("I", 4, arr.shape[0])
+            buffer.write_bytes(arr.tobytes())
+
+        def deserialize(self, buffer: Any, *args: Any, **kwargs: Any) -> Any:
+            buffer.align(4)
+            count = buffer.read("I", 4)
+            raw = buffer.read_bytes(20 * count)
+            return np.frombuffer(raw, dtype=buffer._endian + "f4").reshape(count, 5).astype(np.float32)
+
+        def default_initialize(self) -> Any:
+            return np.empty((0, 5), np.float32)
+
+    struct.__idl__.populate()
+    for name in ("v1_machine", "v2_machine"):
+        machine = getattr(struct.__idl__, name, None)
+        if machine is not None and "returns" in getattr(machine, "members_machines", {}):
+            machine.members_machines["returns"] = ReturnsMachine()
+
+
+_returns_as_array(RadarScan)

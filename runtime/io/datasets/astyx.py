@@ -8,6 +8,7 @@ Layout::
     lidar_vlp16/NNNNNN.txt        ``X Y Z Reflectivity LaserID Timestamp`` (Velodyne VLP-16)
     calibration/NNNNNN.json       {"sensors": [{"sensor_uid": ..., "calib_data":
                                   {"T_to_ref_COS": 4x4}}, ...]}
+    groundtruth_obj3d/NNNNNN.json 3D object boxes, radar frame (``astyx_boxes``; optional)
 
 ``T_to_ref_COS`` maps a sensor's points into the reference coordinate system (the radar's;
 its own matrix is the identity), so ``p_radar = inv(T_radar) @ T_lidar @ p_lidar`` and
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.io.datasets.astyx_boxes import BOXES_DIR, Boxes, empty_boxes, read_astyx_boxes
 from msdnet.runtime.io.datasets.frame import Frame, FrameDataset, as_transform, read_json, split_contiguous
 from msdnet.runtime.io.files import read_cloud
 
@@ -101,6 +103,17 @@ class AstyxDataset(FrameDataset):
         """(4, 4) float64 ``inv(T_lidar) @ T_radar``."""
         t = self.sensor_transforms(frame_id)
         return np.linalg.inv(t[LIDAR_UID]) @ t[RADAR_UID]
+
+    def boxes(self, frame_id: str) -> Boxes:
+        """The frame's labelled 3D boxes, radar frame (``astyx_boxes``); no box when the frame has
+        no ``groundtruth_obj3d`` file. ``has_boxes`` says whether the folder holds labels at all."""
+        path = self.root / BOXES_DIR / f"{frame_id}.json"
+        return read_astyx_boxes(path) if path.is_file() else empty_boxes()
+
+    @property
+    def has_boxes(self) -> bool:
+        """Whether the dataset folder holds object labels (``groundtruth_obj3d/``)."""
+        return (self.root / BOXES_DIR).is_dir()
 
     def load(self, frame_id: str) -> Frame:
         r2l = self.radar_to_lidar(frame_id)

@@ -14,14 +14,15 @@ between the two messages' frame ids). Output (``runtime/io/datasets/vod`` reads 
     OUT/lidar/ImageSets/{train,val}.txt    split by contiguous ranges (split_contiguous)
 
 Radar columns the messages lack (after ``--field`` mapping) are written as 0 and named in the
-report. The folder is written under a temporary name next to OUT and renamed when complete.
+report. OUT's place is checked writable before the bag is read, and the folder is written under
+a temporary name next to OUT and renamed when complete (``io.atomic.atomic_folder``); a killed
+run's temporary folder is removed by the next run (``io.atomic.check_writable``).
 """
 
 from __future__ import annotations
 
 import bisect
 import json
-import shutil
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +33,7 @@ from tqdm import tqdm
 
 from msdnet.runtime.engine.pointcloud import canonical_column
 from msdnet.runtime.errors import MsdnetError
-from msdnet.runtime.io.atomic import temp_name
+from msdnet.runtime.io.atomic import atomic_folder, check_writable
 from msdnet.runtime.io.datasets.frame import split_contiguous
 from msdnet.runtime.io.files import LIDAR_COLUMNS, VOD_RADAR_COLUMNS
 from msdnet.runtime.io.pairing.transforms import TfTree, matrix, stamp_ns
@@ -166,6 +167,7 @@ def pair_bag(bag: Path, out: Path, opts: PairOptions, echo: Callable[[str], None
     highlevel, _, typesys = _rosbags()
     if out.exists():
         raise MsdnetError(out, "already exists; remove it or choose another --out")
+    check_writable(out, "folder")  # before any work; a killed run's temporary folder there is removed
     if not (bag.is_file() and bag.suffix == ".bag") and not (
         bag.is_dir() and (bag / "metadata.yaml").is_file()
     ):
@@ -213,18 +215,17 @@ def _pair(
     lidar_to_ids: dict[int, list[int]] = {}
     for i, j in pairs.items():
         lidar_to_ids.setdefault(j, []).append(ids[i])
-    tmp = out.parent / temp_name(out.name)
-    dirs = {
-        k: tmp / s / "training" / d
-        for k, (s, d) in {
-            "rv": ("radar", "velodyne"),
-            "rc": ("radar", "calib"),
-            "lv": ("lidar", "velodyne"),
-            "lc": ("lidar", "calib"),
-            "lp": ("lidar", "pose"),
-        }.items()
-    }
-    try:
+    with atomic_folder(out) as tmp:
+        dirs = {
+            k: tmp / s / "training" / d
+            for k, (s, d) in {
+                "rv": ("radar", "velodyne"),
+                "rc": ("radar", "calib"),
+                "lv": ("lidar", "velodyne"),
+                "lc": ("lidar", "calib"),
+                "lp": ("lidar", "pose"),
+            }.items()
+        }
         for d in dirs.values():
             d.mkdir(parents=True)
         failed = _write_frames(
@@ -251,11 +252,6 @@ def _pair(
             )
         report.pairs = len(written)
         report.dropped = [f"radar message {i} at {radar[i]} ns: {why}" for i, why in sorted(dropped.items())]
-        tmp.rename(out)
-    except OSError as err:
-        raise MsdnetError(out, f"cannot write: {err.strerror or err}") from None
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
     return report
 
 
@@ -277,6 +273,7 @@ def _write_frames(
     zero_filled: set[str] = set()
     failed: dict[int, str] = {}
     counts = {opts.radar_topic: 0, opts.lidar_topic: 0}
+    nonfinite = {"radar": 0, "LiDAR": 0}  # rows with NaN/Inf dropped, counted in a note
     total = len(ids) + sum(len(v) for v in lidar_to_ids.values())
     bar = tqdm(total=total, desc="msdnet-data pair: write", unit="file", disable=None)
     for conn, _, raw in reader.messages(connections=conns):
@@ -304,13 +301,20 @@ def _write_frames(
                     {i: f"its LiDAR sweep {index} is {cause}" for i, n in ids.items() if n in targets}
                 )
             continue
-        values = values[np.isfinite(values).all(axis=1)]
+        finite = np.isfinite(values).all(axis=1)
+        if not finite.all():
+            nonfinite["radar" if is_radar else "LiDAR"] += int(finite.size - finite.sum()) * len(targets)
+            values = values[finite]
         for n in targets:
             side = "r" if is_radar else "l"
             np.ascontiguousarray(values, dtype="<f4").tofile(dirs[f"{side}v"] / f"{n:05d}.bin")
             _write_calib(dirs[f"{side}c"] / f"{n:05d}.txt", extrinsic if is_radar else np.eye(4))
             bar.update()
     bar.close()
+    if any(nonfinite.values()):
+        report.notes.append(
+            "rows with NaN/Inf dropped: " + ", ".join(f"{n} {side}" for side, n in nonfinite.items() if n)
+        )
     if zero_filled:
         names = " ".join(c for c in VOD_RADAR_COLUMNS if c in zero_filled)
         report.notes.append(
