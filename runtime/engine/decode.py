@@ -265,27 +265,6 @@ def _axis_index(v: np.float32, lo: float, inv: float, n: int) -> int:
 
 
 @njit(cache=True)
-def _radar_confidence_packed_kernel(
-    points: np.ndarray, occupancy: np.ndarray, lo: np.ndarray, inv: np.ndarray, shape_xyz: np.ndarray
-) -> np.ndarray:
-    """points (K, >=3) float32, occupancy (8, D2, H2, W2) packed -> (K,) float32 neighbourhood max."""
-    w, h, d = shape_xyz[0], shape_xyz[1], shape_xyz[2]
-    out = np.zeros(points.shape[0], np.float32)
-    for k in range(points.shape[0]):
-        x0 = _axis_index(points[k, 0], lo[0], inv[0], w)
-        y0 = _axis_index(points[k, 1], lo[1], inv[1], h)
-        z0 = _axis_index(points[k, 2], lo[2], inv[2], d)
-        best = np.float32(0.0)
-        for z in range(max(z0 - 1, 0), min(z0 + 2, d)):
-            for y in range(max(y0 - 1, 0), min(y0 + 2, h)):
-                for x in range(max(x0 - 1, 0), min(x0 + 2, w)):
-                    v = occupancy[((z & 1) * 2 + (y & 1)) * 2 + (x & 1), z >> 1, y >> 1, x >> 1]
-                    best = max(best, v)
-        out[k] = best
-    return out
-
-
-@njit(cache=True)
 def _radar_confidence_sparse_kernel(
     points: np.ndarray,
     occupancy: np.ndarray,
@@ -333,7 +312,9 @@ def radar_confidence_packed(points: np.ndarray, occupancy: np.ndarray, grid: Gri
     if occ.shape != (8, *half):
         raise ValueError(f"packed occupancy must be (8, *{half}), got {occ.shape}")
     lo, _, size, shape = grid_arrays(grid)
-    return _radar_confidence_packed_kernel(pts, occ, lo, 1.0 / size, shape)
+    # every half-scale voxel present: the sparse kernel over the (N, 8) view of the packed volume
+    rows = occ.reshape(8, -1).T  # (D2 * H2 * W2, 8), a view: row = linear half-scale index
+    return _radar_confidence_sparse_kernel(pts, rows, np.arange(rows.shape[0]), lo, 1.0 / size, shape)
 
 
 def radar_confidence_sparse(
