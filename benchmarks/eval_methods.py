@@ -121,7 +121,12 @@ class PipelineMethod(Method):
         a = self.pipe.artifact
         steps = self.steps or a.diffusion.sample_steps
         thr = a.threshold if self.threshold is None else self.threshold
-        return {**super().describe(), "steps": steps, "threshold": thr, "columns": list(a.inputs.columns)}
+        out = {**super().describe(), "steps": steps, "threshold": thr, "columns": list(a.inputs.columns)}
+        if self.threshold is None and a.range_thresholds is not None:  # what the pipeline decodes at
+            out["range_thresholds"] = a.range_thresholds.to_json()
+        if a.keep_threshold is not None:
+            out["keep_radar_threshold"] = a.keep_threshold
+        return out
 
 
 class TorchMethod(Method):

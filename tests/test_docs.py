@@ -135,7 +135,9 @@ def _lat(run: str, *path):
 VAL, R2, PUB = "quality-astyx-val", "quality-astyx-val-r2ldm", "quality-astyx-val-r2ldm-published"
 RADAR = "4D radar"
 MSD = "MSDNet (onnxruntime)"  # the shipped astyx-lite, with its manifest's keep rule
-MSD_OWN = "astyx-lite without the keep rule"  # the same model's decoded points alone
+MSD_ONE = "astyx-lite before the range thresholds"  # the same model at one threshold, keep rule on
+MSD_OWN = "astyx-lite with neither rule"  # the same model's decoded points alone, one threshold
+MSD_ALL = "astyx-lite with neither rule, every radar point kept"  # ... plus every radar point
 NODGFD = "w/o DGFD (astyx-lite-nodgfd)"  # the shipped astyx-lite-nodgfd, with its keep rule
 QUALITY_COLUMNS = {
     "frames": ("{:.0f}", "evaluation.frames"),
@@ -150,7 +152,9 @@ QUALITY_ROWS = {
     "4D radar": (VAL, RADAR),
     "R2LDM, improved (`astyx-lite-r2ldm`)": (R2, "R2LDM (onnxruntime)"),
     "MSDNet (`astyx-lite`)": (VAL, MSD),
-    "MSDNet without the keep rule": (VAL, MSD_OWN),
+    "MSDNet, one threshold everywhere": (VAL, MSD_ONE),
+    "MSDNet, one threshold, no radar point kept": (VAL, MSD_OWN),
+    "MSDNet, one threshold, every radar point kept": (VAL, MSD_ALL),
     "4D radar, every 4th frame": (PUB, RADAR),
     "R2LDM as published (its authors' code, narrower U-Net)": (PUB, "R2LDM as published (onnxruntime)"),
 }
@@ -178,7 +182,7 @@ OBJECT_ROWS = {
     "4D radar": RADAR,
     "R2LDM, improved": "R2LDM (onnxruntime)",
     "MSDNet (`astyx-lite`)": MSD,
-    "MSDNet without the keep rule": MSD_OWN,
+    "MSDNet, one threshold, no radar point kept": MSD_OWN,
 }
 
 

@@ -269,7 +269,9 @@ def _plan(
 )
 @click.option("--denoiser-hidden", type=int, default=None, help="Student: light denoiser width [32].")
 @click.option("--time-embed", type=int, default=None, help="Student: denoiser time-embedding width [64].")
-@click.option("--head", "head_kind", default=None, help="Recon head: dense | gated | sparse [dense].")
+@click.option(
+    "--head", "head_kind", default=None, help="Recon head: dense | gated | gated8 | sparse [dense]."
+)
 @click.option(
     "--head-only",
     is_flag=True,

@@ -20,7 +20,7 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option(
     "--head",
-    type=click.Choice(["dense", "gated", "sparse"]),
+    type=click.Choice(["dense", "gated", "gated8", "sparse"]),
     help="Recon head of random models [dense].",
 )
 @click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")
@@ -32,9 +32,9 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--r2ldm", type=click.Path(path_type=Path), help="Exported R2LDM folder [random].")
 @click.option(
     "--provider",
-    default="cpu",
+    default="auto",
     show_default=True,
-    help="cpu, cpu-shared, auto, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
+    help="auto (as msdnet-infer), cpu, cpu-shared, auto-bf16, openvino, openvino-bf16, cuda or tensorrt.",
 )
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads [all cores].")
 @click.option("--repeats", type=click.IntRange(min=1), help="Timed MSDNet frames [30; quick 3].")
@@ -79,6 +79,13 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     help="Random models: also time the same model with its unoptimised graphs (dense head, "
     "old up-sampling, T_m 50, cpu), interleaved in this run.",
 )
+@click.option(
+    "--before",
+    type=click.Path(path_type=Path),
+    help="A previous MSDNet folder (e.g. a copy of the shipped model): time it against the new "
+    "pipeline, both fresh at --provider, interleaved on the same stream of scans; ratios "
+    "frame_over_before and encoder_over_before.",
+)
 @click.option("--data", type=click.Path(path_type=Path), help="Dataset root (Table III quality).")
 @click.option("--dataset", type=click.Choice(DATASET_NAMES), help="Layout of --data.")
 @click.option("--frames", type=click.IntRange(min=1), help="Frames scored per T_m [10; quick 1].")
@@ -109,6 +116,7 @@ def latency_command(
     peers_on_one_frame: bool,
     stream_frames: int | None,
     against_old: bool,
+    before: Path | None,
     data: Path | None,
     dataset: str | None,
     frames: int | None,
@@ -142,6 +150,7 @@ def latency_command(
         "peer_stream": not peers_on_one_frame,
         "stream_frames": stream_frames,
         "against_old": against_old,
+        "before": before,
         "data": data,
         "dataset": dataset,
         "frames": frames,

@@ -54,7 +54,7 @@ def quality_by_steps(
     pipe: Pipeline,
     frames: list[tuple[str, PointCloud, np.ndarray]],
     steps_list: tuple[int, ...],
-    threshold: float,
+    threshold: float | None,
     seed: int = 0,
 ) -> list[dict[str, Any]]:
     """Per step count: the mean of every metric over ``frames`` (``quality.suite.summarize``: cd,

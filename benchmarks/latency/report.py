@@ -18,6 +18,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from msdnet.benchmarks.latency.before import before_goal_rows, before_section  # noqa: E402
 from msdnet.benchmarks.latency.models import publish_temp, write_json_atomic, write_text_atomic  # noqa: E402
 from msdnet.benchmarks.latency.peer_report import (  # noqa: E402
     auto_section,
@@ -69,7 +70,7 @@ def goals(res: dict[str, Any]) -> list[dict[str, Any]]:
     stream = (res.get("stream") or {}).get("stages_ms")
     if res["preset"] == "lite" and res["models"]["msdnet"]["weights"] != "random" and stream:
         rows.append(("lite model, ms per frame on a stream", stream["total"]["median"], "<=", LITE_STREAM_MS))
-    rows += goal_rows(res)
+    rows += goal_rows(res) + before_goal_rows(res)
     ops: dict[str, Callable[[float, float], bool]] = {
         "<=": lambda a, b: a <= b,
         ">=": lambda a, b: a >= b,
@@ -323,7 +324,8 @@ def _details(res: dict[str, Any]) -> list[str]:
 
 def markdown(res: dict[str, Any]) -> str:
     """results.md: machine, input, stages, goals, Tables III and IV, sweeps, details, INT8, notes."""
-    out = _header(res) + _tables(res) + head_section(res) + old_section(res) + auto_section(res)
+    out = _header(res) + _tables(res) + before_section(res) + head_section(res) + old_section(res)
+    out += auto_section(res)
     out += peers_section(res)
     out += _details(res)
     out += ["", "![stages](stages.png) ![steps](steps.png) ![points](points.png)", ""]

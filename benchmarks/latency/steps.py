@@ -66,7 +66,9 @@ def steps_markdown(doc: dict[str, Any]) -> str:
             else ""
         )
         + ". The ms ratios come from one run (T_m round-robin per frame). Threshold "
-        f"{doc['threshold']:.4g} ({doc['threshold_note']}), seed {ev['seed']}, gate {doc['gate']}.",
+        f"{doc['threshold']:.4g} ({doc['threshold_note']}"
+        + (f"; by range {doc['range_thresholds']}" if doc.get("range_thresholds") else "")
+        + f"), seed {ev['seed']}, gate {doc['gate']}.",
         "",
         f"Scored like `msdnet-bench quality`: prediction and LiDAR cropped to the grid box and the "
         f"field of view, mean over the frames; Δ columns are relative to T_m = {last}.",
@@ -142,7 +144,8 @@ def run_steps(
         ids = split_frames(run_dataset, dataset, data, "select", max_frames)[1]
     frames = load_frames(data, dataset, max_frames, pipe, None if split in ("all", "select") else split, ids)
     thr = pipe.artifact.threshold if threshold is None else threshold
-    rows = quality_by_steps(pipe, frames, steps, thr, seed)
+    bands = pipe.range_thresholds if threshold is None else None  # the manifest's, as the runtime
+    rows = quality_by_steps(pipe, frames, steps, threshold, seed)
     for r in rows:
         r["vs_last_pct"] = {k: relative_pct(r[k], rows[-1][k]) for k in PCT_KEYS}
     doc = {
@@ -167,6 +170,7 @@ def run_steps(
         "threads": threads or os.cpu_count(),
         "threshold": thr,
         "threshold_note": "manifest" if threshold is None else "--threshold",
+        "range_thresholds": None if bands is None else bands.to_json(),
         "gate": pipe.gate,
         "manifest_steps": pipe.artifact.diffusion.sample_steps,
         "rows": rows,

@@ -26,15 +26,27 @@ from __future__ import annotations
 import os
 import tempfile
 from collections.abc import Callable
-from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from msdnet.benchmarks.latency.before import before_comparison, before_threshold, load_before
 from msdnet.benchmarks.latency.compare import int8_comparison, torch_comparison
+from msdnet.benchmarks.latency.config import LatencyConfig, quick_config  # noqa: F401 - cli and tests
 from msdnet.benchmarks.latency.head import choose_gate, coarse_to_fine_gate, head_comparison
-from msdnet.benchmarks.latency.models import KINDS, ModelPair, given_pair, preset_config, random_pair
+from msdnet.benchmarks.latency.inputs import (  # tests read _frame_stream, _models and _named here
+    STREAM_SEED_STRIDE,
+    _frame_stream,
+    _inputs,
+    _models,
+    _named,
+    _seeded_scans,
+    _stream,
+    _target,
+    _threshold,
+)
+from msdnet.benchmarks.latency.models import KINDS, ModelPair
 from msdnet.benchmarks.latency.old_graphs import old_comparison
 from msdnet.benchmarks.latency.peers import peer_comparison
 from msdnet.benchmarks.latency.report import write_outputs
@@ -42,7 +54,6 @@ from msdnet.benchmarks.latency.runs import msdnet_timings, stream_timings, sweep
 from msdnet.benchmarks.latency.timing import (
     BareStep,
     StageRuns,
-    calibrate_threshold,
     peak_rss_mb,
     summary,
     synthetic_radar,
@@ -52,150 +63,11 @@ from msdnet.benchmarks.latency.timing import (
 from msdnet.benchmarks.latency.useful import efficiency, stage_flops
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.engine.session import SHARED
 from msdnet.runtime.errors import MsdnetError
 
 TABLE3_STEPS = (3, 10, 50, 100)  # MSDNet Table III
 GRAPH_STAGES = ("encoder", "rgfd_adapter", "ddim_loop", "recon_head")  # what torch eager also runs
-
-
-@dataclass(frozen=True)
-class LatencyConfig:
-    """Settings of one ``msdnet-bench latency`` run."""
-
-    out: Path  # folder for results.json, results.md and the plots
-    preset: str | None = None  # model preset for random models (default lite; --model: its own)
-    model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
-    head: str | None = None  # random models: "dense", "gated" or "sparse" recon head [dense]
-    loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
-    up_sampling: str | None = None  # random models: head export form (training.nn.head.Up2x) [the exporter's]
-    r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
-    provider: str = "cpu"  # provider short name (runtime.engine.session: cpu, auto, openvino, cuda, tensorrt)
-    threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
-    repeats: int = 30  # timed MSDNet calls (sweeps use max(2, repeats // 5))
-    warmup: int = 3  # untimed calls before timing
-    r2ldm_repeats: int = 5  # timed R2LDM calls (128 steps each: slow)
-    steps: tuple[int, ...] = (1, 3, 10, 25, 50, 100)  # steps sweep (Table III steps added)
-    point_counts: tuple[int, ...] = (1000, 3000, 10000, 30000, 100000)  # input-size sweep
-    target_points: int = 20000  # random weights: threshold leaving about this many points
-    int8: bool = True  # measure an INT8 step graph
-    data: Path | None = None  # dataset root for Table III quality and a real timing input
-    dataset: str | None = None  # layout of data: vod, astyx or sim
-    frames: int = 10  # frames scored per step count
-    seed: int = 0  # weights, inputs and noise
-    peers: bool = True  # time the peer engines (OpenVINO, torch eager, torch.compile) per stage
-    torch_compile: bool = True  # include torch.compile among the peers (compiles for minutes)
-    peer_repeats: int = 5  # interleaved repeats per engine and stage
-    peer_stream: bool = True  # peers on a stream of distinct frames; False: one frame repeated (before 12-05)
-    stream_frames: int = 30  # whole frames on a stream: this many distinct frames, each once (0: not run)
-    against_old: bool = False  # random models: time the old graphs in this run (latency/old_graphs.py)
-
-    @property
-    def sweep_repeats(self) -> int:
-        return max(2, self.repeats // 5)
-
-
-def quick_config(out: Path, **kw: Any) -> LatencyConfig:
-    """A run of a few seconds on the tiny preset (tests): few repetitions, short sweeps."""
-    base: dict[str, Any] = {"preset": "tiny", "repeats": 3, "warmup": 1, "r2ldm_repeats": 1}
-    base |= {"steps": (1, 50), "point_counts": (1000, 100000), "frames": 1}
-    base |= {"torch_compile": False, "peer_repeats": 2, "stream_frames": 3}
-    return LatencyConfig(out=out, **(base | kw))
-
-
-def _models(cfg: LatencyConfig, scratch: Path) -> ModelPair:
-    if cfg.model is None:
-        if cfg.r2ldm is not None:
-            raise MsdnetError("--r2ldm", "only used with --model")
-        base = preset_config(cfg.preset or "lite")
-        if cfg.head is not None:
-            base = replace(base, head_kind=cfg.head)
-        if cfg.loop_steps is not None:
-            base = replace(base, diffusion=replace(base.diffusion, sample_steps=cfg.loop_steps))
-        return random_pair(base, scratch, cfg.seed, cfg.up_sampling)
-    if cfg.against_old:
-        raise MsdnetError("--against-old", "random models only (--preset): a given model has no old graphs")
-    if cfg.head is not None or cfg.loop_steps is not None or cfg.up_sampling is not None:
-        raise MsdnetError(
-            "--head", "--head, --loop-steps and --up-sampling set up random models: not with --model"
-        )
-    pair = given_pair(cfg.model, cfg.r2ldm, scratch, cfg.seed)
-    if cfg.preset is not None and cfg.preset != pair.cfg.preset:
-        raise MsdnetError("--preset", f"{cfg.preset} differs from the model's preset {pair.cfg.preset}")
-    return pair
-
-
-def _target(pipe: Pipeline, cfg: LatencyConfig) -> int:
-    d, h, w = pipe.artifact.grid.shape_zyx
-    return max(1, min(cfg.target_points, d * h * w // 20))
-
-
-def _threshold(pipe: Pipeline, weights: str, points: Any, cfg: LatencyConfig) -> tuple[float, str]:
-    if weights == "random":
-        thr = calibrate_threshold(pipe, points, _target(pipe, cfg), cfg.seed)
-        return thr, f"random weights: threshold at the quantile leaving ~{_target(pipe, cfg)} points"
-    return pipe.artifact.threshold, "manifest threshold"
-
-
-def _named(points: Any, columns: tuple[str, ...]) -> Any:
-    """``points`` (N, C) in MSDNet's ``columns`` as a PointCloud, so that any pipeline picks its own
-    columns by name; a PointCloud as it is."""
-    if isinstance(points, PointCloud):
-        return points
-    return PointCloud(np.ascontiguousarray(points, dtype=np.float32), tuple(columns))
-
-
-def _inputs(cfg: LatencyConfig, pipe: Pipeline) -> tuple[Any, str, list]:
-    """(timing input, its description, quality frames): the first --data frame, else synthetic."""
-    if cfg.data is None:
-        pts = synthetic_radar(pipe.columns, pipe.artifact.grid, 300, cfg.seed)
-        return pts, "synthetic radar-like scan, seeded", []
-    from msdnet.benchmarks.latency.quality import load_frames
-
-    frames = load_frames(cfg.data, str(cfg.dataset), cfg.frames, pipe)
-    return frames[0][1], f"{cfg.dataset} frame {frames[0][0]}", frames
-
-
-def _stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list) -> list:
-    """The peers' stream (``peers.peer_comparison``): the timing input to warm up, then the other
-    --data frames, else seeded synthetic scans of the same size (one more than the repeats)."""
-    rest = [f[1] for f in frames[1:]]
-    if not rest:
-        rest = _seeded_scans(cfg, pipe, points, cfg.peer_repeats, 7919)  # 7919: apart from the sweeps'
-    return [points, *rest]
-
-
-def _seeded_scans(cfg: LatencyConfig, pipe: Pipeline, points: Any, count: int, stride: int) -> list:
-    """``count`` synthetic scans of the timing input's size, seeds ``cfg.seed + stride * (k + 1)``."""
-    n = len(points.points) if isinstance(points, PointCloud) else len(points)
-    return [
-        synthetic_radar(pipe.columns, pipe.artifact.grid, n, cfg.seed + stride * (k + 1))
-        for k in range(count)
-    ]
-
-
-STREAM_SEED_STRIDE = 104729  # seeds of the whole-frame stream's scans: apart from the peers' and sweeps'
-
-
-def _frame_stream(cfg: LatencyConfig, pipe: Pipeline, points: Any, frames: list) -> tuple[list, str]:
-    """(scans, description) of the whole-frame stream (``stream_timings``): ``cfg.stream_frames``
-    --data frames that no other measurement of the run reads, spread evenly and in order, else
-    seeded synthetic scans of the timing input's size; none when --data has no other frame."""
-    if cfg.stream_frames == 0:
-        return [], "not run (--stream-frames 0)"
-    if cfg.data is None:
-        scans = _seeded_scans(cfg, pipe, points, cfg.stream_frames, STREAM_SEED_STRIDE)
-        return scans, f"{len(scans)} seeded synthetic scans of {len(scans[0])} points"
-    from msdnet.benchmarks.latency.quality import load_frames
-    from msdnet.runtime.io.datasets import open_dataset
-
-    used = {f[0] for f in frames}
-    ids = [i for i in open_dataset(str(cfg.dataset), cfg.data).frame_ids if i not in used]
-    if not ids:
-        return [], f"not run: --data has no frame besides the {len(used)} the other measurements read"
-    got = load_frames(cfg.data, str(cfg.dataset), cfg.stream_frames, pipe, frame_ids=ids)
-    return [f[1] for f in got], f"{len(got)} {cfg.dataset} frames {got[0][0]} to {got[-1][0]}, in order"
 
 
 def _notes(res: dict[str, Any]) -> list[str]:
@@ -220,16 +92,45 @@ def _notes(res: dict[str, Any]) -> list[str]:
     return notes
 
 
+def _before(
+    cfg: LatencyConfig,
+    pair: ModelPair,
+    msd: Pipeline,
+    points: Any,
+    thr: float,
+    sensor: list,
+    sensor_source: str,
+    log: Callable[[str], None],
+) -> dict[str, Any]:
+    """The new pipeline against ``cfg.before`` (``latency/before``): both loaded fresh at the run's
+    provider, on the whole-frame stream's scans (else seeded scans of the timing input's size)."""
+    assert cfg.before is not None
+    scans, source = sensor, sensor_source
+    if not scans:
+        scans = _seeded_scans(cfg, msd, points, max(3, cfg.sweep_repeats), STREAM_SEED_STRIDE)
+        source = f"{len(scans)} seeded synthetic scans of {len(scans[0])} points"
+    log(f"the previous pipeline ({cfg.before}) against the new one, interleaved on {len(scans)} scans ...")
+    new = Pipeline.from_dir(pair.msdnet.folder, cfg.provider, cfg.threads)
+    new.warmup()
+    if pair.msdnet.weights == "random":
+        new.gate = msd.gate  # the run's gate; a given model runs as msdnet-infer runs it
+    prev = load_before(Path(cfg.before), cfg.provider, cfg.threads)
+    prev_thr = before_threshold(prev, pair.msdnet.weights, points, msd, _target(msd, cfg), cfg.seed)
+    return before_comparison(new, prev, points, scans, (thr, prev_thr), source, cfg.seed)
+
+
 def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Run every measurement of the module docstring, write the outputs; -> results.json's dict."""
     if (cfg.data is None) != (cfg.dataset is None):
         raise MsdnetError("--data", "--data and --dataset go together")
-    if cfg.provider.strip().lower() == SHARED and (cfg.peers or cfg.against_old):
+    if cfg.provider.strip().lower() == SHARED and (cfg.peers or cfg.against_old or cfg.before):
         raise MsdnetError(
             "--provider",
             f"{SHARED}'s pool spins between graphs and would slow the engines timed beside it: "
-            "use --no-peers, without --against-old",
+            "use --no-peers, without --against-old or --before",
         )
+    if cfg.before is not None and not (Path(cfg.before) / "manifest.json").is_file():
+        raise MsdnetError("--before", f"{cfg.before} is not an exported model folder (no manifest.json)")
     load_start = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="msdnet-latency-") as tmp:
         scratch = Path(tmp)
@@ -309,6 +210,9 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
         if sensor:
             log(f"timing MSDNet on a stream ({len(sensor)} frames, each once) ...")
             stream |= stream_timings(msd, sensor, thr["msdnet"], cfg.seed, c2f_gate)
+        before: dict[str, Any] = {"note": "not run (--before)"}
+        if cfg.before is not None:
+            before = _before(cfg, pair, msd, points, thr["msdnet"], sensor, sensor_source, log)
         vox = voxelize_figures(grid, len(cols), msd.artifact.inputs.max_voxels, max(10, cfg.repeats))
         rss = peak_rss_mb(pair.msdnet.folder, msd.select_columns(points), cols, cfg.threads, thr["msdnet"])
         int8 = {}
@@ -332,7 +236,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     useful = efficiency(flops, stages, main["step_graph"]["sgemm_gflops_peak"])
     res: dict[str, Any] = {
         "preset": pair.cfg.preset,
-        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated" or "sparse"
+        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated", "gated8" or "sparse"
         "up_sampling": cfg.up_sampling,  # random models' head export form (None: given models / default)
         "provider": cfg.provider,
         "threads": cfg.threads,
@@ -372,8 +276,11 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             "engine_over_best_peer": peers.get("engine_over_best_peer", float("nan")),
             "engine_over_best_f32_peer": peers.get("engine_over_best_f32_peer", float("nan")),
             "total_over_old_graphs": old.get("new_over_old", float("nan")),
+            "frame_over_before": before.get("frame_over_before", float("nan")),
+            "encoder_over_before": before.get("encoder_over_before", float("nan")),
         },
         "against_old": old,
+        "before": before,
         "head": {**head, "gate_note": gate_note},
         "peers": peers,
         "provider_auto": {k: pipes[k].auto.to_json() for k in KINDS if pipes[k].auto is not None},

@@ -16,7 +16,9 @@ Stages (``Result.timings`` keys, seconds):
    is set (default: the manifest's calibrated ``gate``), the coarse-to-fine
    ``recon_head_sparse.onnx``: the full scale only under the half-scale voxels whose occupancy
    passes the gate (``onnx_spec.RECON_HEAD_SPARSE``), decoded by ``decode_sparse``.
-7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with
+7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with range
+   thresholds (manifest ``range_thresholds``, ``engine.range_threshold``) and no threshold given,
+   decoded at the lowest and each point kept when its occupancy passes its range band's; with
    ``keep_radar`` the input radar points inside the grid box are appended (confidence 1).
    With a keep threshold (manifest ``keep_radar_threshold``, ``Pipeline.keep_threshold``) each
    input radar point inside the grid box gets a confidence from the head's own output
@@ -58,6 +60,7 @@ from msdnet.runtime.engine.decode import (
 from msdnet.runtime.engine.kernels import warmup as numba_warmup
 from msdnet.runtime.engine.pairs import pair_feeds
 from msdnet.runtime.engine.pointcloud import PointCloud
+from msdnet.runtime.engine.range_threshold import RangeThresholds
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.engine.session import AUTO, base_provider, create_session, device_of, precision_of
 from msdnet.runtime.engine.voxelize import in_range_mask, voxelize
@@ -130,6 +133,8 @@ class Pipeline:
         self.columns = artifact.inputs.columns  # point columns the encoder expects, in order
         # keep radar points whose head occupancy around them reaches this (None: keep none)
         self.keep_threshold: float | None = artifact.keep_threshold
+        # decoding thresholds by range band when no threshold is given (None: the manifest's one)
+        self.range_thresholds: RangeThresholds | None = artifact.range_thresholds
         self.sessions: dict[str, ort.InferenceSession] = {}
         threads_of: dict[str, int | None] = {}  # graph file -> intra-op threads
         self.graph_threads = threads_of  # kept for logs and tests
@@ -396,6 +401,10 @@ class Pipeline:
         Same seed, same bytes: for any ``threads`` and in any process, given the same artifact,
         onnxruntime build and CPU (tested across threads 1/2 and msdnet-infer --workers 1/2).
 
+        threshold: None (default): the manifest's ``range_thresholds`` when it has them (each point
+        kept when its occupancy passes its range band's threshold), else its ``threshold``; a
+        value: that one threshold everywhere.
+
         keep_radar: False (default): the model's decoded points only (M = M_model), confidence =
         occupancy. True: the model's points followed by the input radar points the model saw, i.e.
         the rows inside the grid box (``lo <= p < hi``, every column finite; the voxelizer's crop,
@@ -411,7 +420,9 @@ class Pipeline:
         then appends the other radar rows (confidence 1.0) after them, so the output without the
         flag is again the first rows. ``stats["radar_kept"]``: the radar rows at the end.
         """
+        bands = self.range_thresholds if threshold is None else None
         thr = self.artifact.threshold if threshold is None else float(threshold)
+        thr = bands.lowest if bands is not None else thr
         if not 0.0 < thr < 1.0:
             raise MsdnetError("threshold", f"must be in (0, 1), got {thr}")
         keep_thr = self.keep_threshold if keep_threshold is None else float(keep_threshold)
@@ -454,6 +465,9 @@ class Pipeline:
         if keep_radar or keep_thr is not None:
             radar = np.ascontiguousarray(pts[in_range_mask(pts, self.artifact.grid), :3])
         out, conf, stats["head_voxels"], sure = self._head(final, thr, None if keep_thr is None else radar)
+        if bands is not None:  # decoded at the lowest band threshold: drop what is under its own
+            by_range = bands.keep(out, conf)
+            out, conf = np.ascontiguousarray(out[by_range]), conf[by_range]
         n_model = len(out)
         if radar is not None:
             extra, extra_conf = [radar], [np.ones(radar.shape[0], np.float32)]

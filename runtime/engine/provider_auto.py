@@ -1,11 +1,13 @@
 """``--provider auto``: per graph, the faster f32 engine installed here (onnxruntime's CPU
 provider or OpenVINO), measured on the model's own kind of scans and cached.
 
-A model's first load measures, within ``BUDGET_S``: seeded radar-like scans, new to every timed
-session, each graph's calls as the pipeline makes them, all engines interleaved scan by scan
-(``provider_measure``). OpenVINO wins a graph when it is at least ``MARGIN`` faster, paired by
-scan, and its outputs agree with onnxruntime's within the export tolerances. With a gate in the
-manifest the same samples decide the head (``provider_head``). Picks are cached per model hash,
+A model's first load measures, within a hard wall-clock ``BUDGET_S`` that covers the compiles
+too: seeded radar-like scans, new to every timed session, each graph's calls as the pipeline makes
+them, all engines interleaved scan by scan (``provider_measure``; ``provider_budget`` says what
+still fits, and a slow graph may be left on onnxruntime, uncached, for a later load). OpenVINO
+wins a graph when it is at least ``MARGIN`` faster, paired by scan, and its outputs agree with
+onnxruntime's within the export tolerances. With a gate in the manifest the same samples decide
+the head (``provider_head``). Picks are cached per model hash,
 graph, threads, CPU and library versions (``provider_cache``); an entry that does not validate, or
 a cache file that cannot be read or is of another version, counts as absent and is measured again,
 with a note. ``docs/latency.md`` has the measurements behind these rules.
@@ -67,6 +69,7 @@ class AutoReport:
     measured_s: float | None = None  # seconds this load spent measuring; None: every pick cached
     scans: int = 0  # scans timed after the warm-up (0: nothing measured)
     notes: tuple[str, ...] = ()  # why the cache was not used: unreadable file, entries that do not validate
+    deferred: tuple[str, ...] = ()  # graphs left for a later load to keep to the budget (provider_budget)
 
     @property
     def dense_head(self) -> bool:
@@ -79,9 +82,13 @@ class AutoReport:
             return None
         more = f"; {len(self.notes) - 1} more cache notes" if len(self.notes) > 1 else ""
         why = f" ({self.notes[0]}{more})" if self.notes else ""
+        later = ""
+        if self.deferred:
+            budget = f"{provider_measure.BUDGET_S:g} s"
+            later = f"; {', '.join(self.deferred)} left on onnxruntime for a later load (budget {budget})"
         return (
             f"provider auto: measured this model's engines here in {self.measured_s:.1f} s over "
-            f"{self.scans} scans{why}; picks cached in {cache_shown(self.cache)} ({self.cache_note})"
+            f"{self.scans} scans{why}{later}; picks cached in {cache_shown(self.cache)} ({self.cache_note})"
         )
 
     def lines(self) -> list[str]:
@@ -102,6 +109,7 @@ class AutoReport:
             "measured_s": self.measured_s,
             "scans": self.scans,
             "notes": list(self.notes),
+            "deferred": list(self.deferred),
         }
 
 
@@ -111,17 +119,30 @@ def _engine_entry(file: str, rival: str, samples: Samples) -> dict[str, Any]:
     if theirs in samples.failed:
         return _stays(f"OpenVINO failed on the graph's inputs: {samples.failed[theirs]}")
     ms, ratio = paired({ONNXRUNTIME: samples.ms[ours], rival: samples.ms[theirs]}, rival, ONNXRUNTIME)
-    entry = {"ms": ms, "ratio": ratio, "scans": samples.scans}
+    n = min(len(samples.ms[ours]), len(samples.ms[theirs]))
+    entry = {"ms": ms, "ratio": ratio, "scans": n}
     if theirs in samples.disagree:
         return entry | {"engine": ONNXRUNTIME, "reason": samples.disagree[theirs]}
-    line = f"{rival} / onnxruntime {ratio:.2f} (median over {samples.scans} scans)"
+    line = f"{rival} / onnxruntime {ratio:.2f} (median over {over_scans(n, samples.scans)})"
     if ratio <= 1.0 - MARGIN:
         return entry | {"engine": rival, "reason": line}
     return entry | {"engine": ONNXRUNTIME, "reason": f"{line} (OpenVINO must be {MARGIN:.0%} faster)"}
 
 
+def over_scans(n: int, scans: int) -> str:
+    """ "n scans", or where one engine stopped early (``provider_budget``), "n of the scans scans"."""
+    return f"{n} scans" if n == scans else f"{n} of {scans} scans: the slower engine stopped early"
+
+
 def _stays(reason: str) -> dict[str, Any]:
     return {"engine": ONNXRUNTIME, "ms": {}, "reason": reason}
+
+
+def _later(budget_s: float) -> dict[str, Any]:
+    """The pick of a graph deferred to keep to the budget (``provider_budget``); never cached."""
+    return _stays(
+        f"not measured within the {budget_s:g} s budget: onnxruntime until a later load measures it"
+    )
 
 
 def choose_engines(pipe: Pipeline, threads: dict[str, int | None], precision: str = "f32") -> AutoReport:
@@ -142,6 +163,7 @@ def choose_engines(pipe: Pipeline, threads: dict[str, int | None], precision: st
     cache = Cache(path)
     entries = {f: cache.get(keys[f], "engine", (ONNXRUNTIME, rival), f) for f in pipe.sessions}
     cached = {f: e is not None for f, e in entries.items()}
+    voxelizer = provider_measure.warm_voxelizer(pipe) if not all(cached.values()) else None
     ov: dict[str, Any] = {}
     for f, entry in entries.items():
         if entry is None or entry["engine"] == rival:
@@ -162,35 +184,43 @@ def choose_engines(pipe: Pipeline, threads: dict[str, int | None], precision: st
         )
         head_entry = cache.get(key, "head", provider_head.HEADS, "the head pick")
         head_cached = head_entry is not None
-        for f in head_files if head_entry is None else []:
+    for f in head_files if contest and head_entry is None else []:
+        if f not in timed:  # its engine is known: time it there for the head pick
             engine = entries[f]["engine"]
             runs[(f, engine)] = ov[f] if engine == rival else pipe.sessions[f]
-    samples = None
+    if voxelizer is not None:
+        voxelizer.join()
+    samples, deferred = None, ()
     if runs:
-        deadline = start + provider_measure.BUDGET_S
+        deadline = start + provider_measure.BUDGET_S  # hard: compiles, warm-ups and scans
         samples = provider_measure.measure(pipe, runs, threads[onnx_spec.ENCODER.file], deadline)
+        deferred = samples.deferred
         for f in timed:
-            entries[f] = _engine_entry(f, rival, samples)
-    new = {keys[f]: e for f, e in entries.items() if not cached[f]}
+            entries[f] = (
+                _later(provider_measure.BUDGET_S) if f in deferred else _engine_entry(f, rival, samples)
+            )
+    new = {keys[f]: e for f, e in entries.items() if not cached[f] and f not in deferred}
     head = None
     if contest:
         picked = {f: entries[f]["engine"] for f in head_files}
         key = provider_head.head_key(manifest, picked, threads, precision)
         if head_entry is None and samples is not None:
             head_entry = provider_head.head_entry(samples, picked)
-            new[key] = head_entry
+            if head_entry is not None:
+                new[key] = head_entry
         if head_entry is not None:
             head = provider_head.pick_of(head_entry, head_cached)
             cache.keep(key, head_entry)
     picks: dict[str, EnginePick] = {}
     for f, entry in entries.items():
-        cache.keep(keys[f], entry)
+        if f not in deferred:  # a deferred graph is measured by the next load, in this process too
+            cache.keep(keys[f], entry)
         if entry["engine"] == rival and f in ov:
             pipe.sessions[f] = ov[f]
         ms = {str(k): float(v) for k, v in entry.get("ms", {}).items()}
         ratio = None if entry.get("ratio") is None else float(entry["ratio"])
         picks[f] = EnginePick(f, entry["engine"], ms, str(entry.get("reason", "")), cached[f], ratio)
     note = write_cache(path, new) if new else "read"
-    spent = time.perf_counter() - start if new else None
+    spent = time.perf_counter() - start if new or samples is not None else None
     scans = samples.scans if samples is not None else 0
-    return AutoReport(picks, path, note, head, spent, scans, tuple(cache.notes))
+    return AutoReport(picks, path, note, head, spent, scans, tuple(cache.notes), deferred)

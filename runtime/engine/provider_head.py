@@ -62,8 +62,9 @@ def head_entry(samples: Samples, engines: dict[str, str]) -> dict[str, Any] | No
         return None
     calls: dict[str, np.ndarray] = {h: samples.ms[label] for h, label in labels.items()}
     ms, ratio = paired(calls, DENSE, COARSE_TO_FINE)
-    line = f"dense / coarse-to-fine {ratio:.2f} (median over {samples.scans} scans)"
-    entry = {"ms": ms, "ratio": ratio, "scans": samples.scans}
+    n = min(len(v) for v in calls.values())  # a head's engine may have stopped early (provider_budget)
+    line = f"dense / coarse-to-fine {ratio:.2f} (median over {n} scans)"
+    entry = {"ms": ms, "ratio": ratio, "scans": n}
     if ratio <= 1.0 - MARGIN:
         return entry | {"head": DENSE, "reason": f"{line}: the reference, no gate"}
     return entry | {"head": COARSE_TO_FINE, "reason": f"{line} (the dense head must be {MARGIN:.0%} faster)"}

@@ -2,14 +2,16 @@
 makes for them, every engine timed on them interleaved, and the checks that an engine's outputs
 agree with onnxruntime's.
 
-:func:`measure` times sessions on a stream of scans new to each timed session, within a budget
-(``BUDGET_S``, at least ``MIN_TIMED_SCANS`` scans); :func:`paired` compares two engines' times
-scan by scan, and a rival wins when at least ``MARGIN`` faster. :func:`disagreement` holds its
-outputs to the export tolerances (looser ``BF16_*`` ones for bfloat16).
+:func:`measure` times sessions on a stream of scans new to each timed session, within a hard
+wall-clock budget (``BUDGET_S``; ``provider_budget`` says what it may still start); :func:`paired`
+compares two engines' times scan by scan, and a rival wins when at least ``MARGIN`` faster.
+``provider_agree.disagreement`` holds its outputs to the export tolerances (looser ``BF16_*`` ones
+for bfloat16).
 """
 
 from __future__ import annotations
 
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -17,6 +19,8 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
+from msdnet.runtime.engine import provider_agree
+from msdnet.runtime.engine import provider_budget as budget
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 
@@ -24,19 +28,15 @@ from msdnet.runtime.model import onnx_spec
 Pipeline = Any
 
 ONNXRUNTIME, OPENVINO, OPENVINO_BF16 = "onnxruntime", "openvino", "openvino-bf16"
-BUDGET_S = 4.0  # a first load measures this long (at least MIN_TIMED_SCANS scans), sessions aside
+# where callers and tests look for them
+AGREE_REL_TOL, AGREE_COS_TOL = provider_agree.AGREE_REL_TOL, provider_agree.AGREE_COS_TOL
+AGREE_E2E_TOL = provider_agree.AGREE_E2E_TOL
+align_rows, disagreement = provider_agree.align_rows, provider_agree.disagreement
+MIN_TIMED_SCANS, WARMUP_ONCE_S = budget.MIN_TIMED_SCANS, budget.WARMUP_ONCE_S
+BUDGET_S = 4.5  # s, wall clock: a first load's whole measurement (provider_budget), compiles included
 STREAM_SCANS = 13  # at most this many distinct seeded scans: the first warms every engine up
-MIN_TIMED_SCANS = 3  # scans timed after the warm-up, whatever the budget
 STREAM_LOOP_STEPS = 4  # a scan's loop runs at most this many DDIM steps (the step graph: as many calls)
 MARGIN = 0.03  # OpenVINO is picked only when at least this much faster (median of paired ratios)
-AGREE_REL_TOL = 1e-4  # = export.verify.GRAPH_REL_TOL (tests/test_provider_auto.py checks)
-AGREE_COS_TOL = 1e-6  # = export.verify.GRAPH_COS_TOL
-AGREE_E2E_TOL = 0.002  # = export.verify.E2E_DIFF_TOL: voxels gated by one engine only (sparse head)
-# auto-bf16: OpenVINO in bfloat16 against onnxruntime f32, a guard against a broken conversion
-# (a wrong graph is off by O(1)), not a quality bound (docs/latency.md has the measured gaps).
-BF16_REL_TOL = 0.1
-BF16_COS_TOL = 1e-3
-BF16_E2E_TOL = 0.05
 SCAN_POINTS = 400  # points of the first scan; the others have 50 % to 150 % as many
 SCAN_CLUSTERS = 12  # clumps of points in a seeded scan
 SCAN_SPREAD = 0.015  # their standard deviation, as a share of the grid box on each axis
@@ -124,6 +124,22 @@ def graph_inputs(
     return {f: c[len(c) // 2] for f, c in frame_calls(pipe, seed, points, sessions).items()}
 
 
+def warm_voxelizer(pipe: Pipeline) -> threading.Thread:
+    """Start loading the voxelizer's and rulebook builder's compiled code (numba: about a second in
+    a new process, which the first scan would pay) in a thread, so that it overlaps OpenVINO's
+    compiles; join it before :func:`measure`. A failure here is left for the first scan to report."""
+
+    def load() -> None:
+        try:
+            pipe.encoder_feeds(seeded_scan(pipe, np.random.default_rng(0)))
+        except Exception:  # noqa: BLE001, S110 - the first scan runs the same and reports it
+            pass
+
+    thread = threading.Thread(target=load, name="msdnet-auto-voxelizer", daemon=True)
+    thread.start()
+    return thread
+
+
 def fresh_sessions(pipe: Pipeline, threads: int | None, files: list[str] | None = None) -> dict[str, Any]:
     """onnxruntime CPU sessions of the pipeline's graphs (``files``; None: all) that its own
     sessions do not share (what runs on them leaves the timed sessions unwarmed)."""
@@ -157,7 +173,7 @@ class _Bound:
     @classmethod
     def of(cls, sess: Any, ref: list[np.ndarray]) -> _Bound:
         static = {
-            o.name: ort.OrtValue.ortvalue_from_numpy(np.empty_like(arr))
+            o.name: ort.OrtValue.ortvalue_from_numpy(np.zeros_like(arr))  # pages touched: not in a timed call
             for o, arr in zip(sess.get_outputs(), ref, strict=True)
             if all(isinstance(d, int) for d in o.shape)
         }
@@ -178,7 +194,7 @@ class _Bound:
 
 
 WARMUP_CALLS = 2  # untimed runs of the first scan: a session's first call allocates its arena
-WARMUP_ONCE_S = 0.05  # a first call at least this long is warm-up enough (paper-size heads: 0.2-0.35 s)
+HEAVY = {onnx_spec.RECON_HEAD_SPARSE.file: 1, onnx_spec.RECON_HEAD.file: 2}  # warmed up last, in this order
 
 
 Calls = list[dict[str, np.ndarray]]  # one scan's calls of one graph, in order: input name -> array
@@ -189,10 +205,13 @@ Label = tuple[str, str]  # (graph file, engine): one timed session
 class Samples:
     """What :func:`measure` saw."""
 
-    ms: dict[Label, np.ndarray]  # (scans,) ms each timed scan's calls took, per session that ran them all
+    ms: dict[
+        Label, np.ndarray
+    ]  # (n,) ms of each of the first n timed scans' calls (n: scans, fewer if stopped)
     disagree: dict[Label, str]  # sessions whose outputs differ from onnxruntime's: why (one line)
     failed: dict[Label, str]  # sessions that raised on the scans: why (one line)
     scans: int  # scans timed after the warm-up
+    deferred: tuple[str, ...] = ()  # graphs left untimed to keep to the budget (provider_budget)
 
 
 def measure(pipe: Pipeline, runs: dict[Label, Any], threads: int | None, deadline: float) -> Samples:
@@ -202,50 +221,81 @@ def measure(pipe: Pipeline, runs: dict[Label, Any], threads: int | None, deadlin
     step graph, so no timed session has seen a scan before it is timed on it: OpenVINO prepares
     kernels per input shape, and a repeated input would flatter it. Scan 0 gives the reference
     outputs (the pipeline's own onnxruntime sessions) that every other engine is checked against,
-    and warms every session up (``WARMUP_CALLS``, one when it takes ``WARMUP_ONCE_S``); then each
+    and warms every session up, graph by graph, the heads last (``HEAVY``): its first call (the
+    reference, or the check) is the warm-up where it takes ``WARMUP_ONCE_S``, else ``WARMUP_CALLS``
+    more. Then each
     further scan runs once per session, its calls back to back as the pipeline makes them (the step
     graph: one a loop step, at most ``STREAM_LOOP_STEPS``), sessions in an order rotated per scan,
-    until ``deadline`` (``time.perf_counter``) once ``MIN_TIMED_SCANS`` are timed, or
-    ``STREAM_SCANS`` in all."""
+    up to ``STREAM_SCANS`` in all, while the budget lasts: ``deadline`` (``time.perf_counter``) is
+    hard, and ``provider_budget`` says which graphs are deferred, how many scans are timed whatever
+    the budget, and which sessions stop early."""
     chain = [f for f in (onnx_spec.ENCODER.file, onnx_spec.RGFD_ADAPTER.file) if f in pipe.sessions]
     chain.append(onnx_spec.DENOISER_STEP.file if pipe.kind == "student" else onnx_spec.R2LDM_STEP.file)
     fresh = fresh_sessions(pipe, threads, chain)
     rest = np.linspace(SCAN_POINTS // 2, 3 * SCAN_POINTS // 2, STREAM_SCANS - 1).round().astype(int)
     counts = [SCAN_POINTS, *np.random.default_rng(0).permutation(rest)]  # sizes in no order
     steps = _loop_steps(pipe)
+    t0 = time.perf_counter()
     first = frame_calls(pipe, 0, counts[0], fresh, steps)
-    files = list(dict.fromkeys(f for f, _ in runs))
-    refs = {f: [np.asarray(a) for a in pipe.sessions[f].run(None, first[f][0])] for f in files}
-    live, disagree, failed = dict(runs), {}, {}
+    planned = time.perf_counter() - t0  # s: one timed scan (its inputs, the sessions kept), about
+    files = sorted(dict.fromkeys(f for f, _ in runs), key=lambda f: HEAVY.get(f, 0))
+    refs: dict[str, list[np.ndarray]] = {}
+    live, disagree, failed, deferred = {}, {}, {}, []
 
     def run(label: Label, calls: Calls, bind: _Bound) -> None:
         for feed in calls:
             live[label].run_with_iobinding(bind.feed(feed))
 
     binds: dict[Label, _Bound] = {}
-    for label, sess in runs.items():
-        file, engine = label
-        try:
-            if engine != ONNXRUNTIME:
-                names = [o.name for o in pipe.sessions[file].get_outputs()]
-                got = [np.asarray(a) for a in sess.run(None, first[file][0])]
-                why = disagreement(got, refs[file], names, getattr(sess, "precision", "f32"))
-                if why is not None:
-                    disagree[label] = why
-            binds[label] = _Bound.of(sess, refs[file])
-            for _ in range(WARMUP_CALLS):
-                t0 = time.perf_counter()
-                run(label, first[file], binds[label])
-                if time.perf_counter() - t0 >= WARMUP_ONCE_S:
-                    break
-        except Exception as err:  # noqa: BLE001 - an engine failing on these inputs: not timed
-            failed[label] = failure_reason(err)
-            live.pop(label)
+    kept, slow = False, False  # a graph is kept; the last one kept is slow
+    for f in files:  # likely cheapest first
+        labels = [label for label in runs if label[0] == f]
+        # an engine pick (two engines) may wait for a later load, never the first one nor the head pick
+        pick = kept and len(labels) > 1
+        if pick and slow and not budget.fits(deadline, planned):  # no time even for its reference
+            deferred.append(f)
+            continue
+        t0 = time.perf_counter()
+        refs[f] = [np.asarray(a) for a in pipe.sessions[f].run(None, first[f][0])]
+        call_s = time.perf_counter() - t0  # one call on onnxruntime, its first: about the cost
+        slow, scan_s = call_s >= WARMUP_ONCE_S, call_s * len(first[f]) * len(labels)
+        if budget.defer(pick and slow, deadline, planned, call_s * (len(labels) - 1), scan_s):
+            deferred.append(f)
+            continue
+        kept = True
+        for label in labels:
+            sess, engine = runs[label], label[1]
+            try:
+                first_s = call_s if sess is pipe.sessions[f] else 0.0
+                if engine != ONNXRUNTIME:
+                    t0 = time.perf_counter()
+                    names = [o.name for o in pipe.sessions[f].get_outputs()]
+                    got = [np.asarray(a) for a in sess.run(None, first[f][0])]
+                    first_s = time.perf_counter() - t0
+                    why = disagreement(got, refs[f], names, getattr(sess, "precision", "f32"))
+                    if why is not None:
+                        disagree[label] = why
+                binds[label] = _Bound.of(sess, refs[f])
+                live[label] = sess
+                planned += max(first_s, call_s) * len(first[f])
+                for _ in range(0 if first_s >= WARMUP_ONCE_S else WARMUP_CALLS):
+                    t0 = time.perf_counter()
+                    run(label, first[f], binds[label])
+                    if time.perf_counter() - t0 >= WARMUP_ONCE_S:
+                        break
+            except Exception as err:  # noqa: BLE001 - an engine failing on these inputs: not timed
+                failed[label] = failure_reason(err)
+                live.pop(label, None)
+    live = {label: live[label] for label in runs if label in live}  # the order of runs
     samples: dict[Label, list[float]] = {label: [] for label in live}
-    scans = 0
+    stopped: set[Label] = set()  # clearly slower than the other engine: no longer timed
+    scans, scan_s = 0, planned
     for k in range(1, STREAM_SCANS):
+        if not live or (scans >= budget.scan_floor(scan_s) and not budget.fits(deadline, scan_s)):
+            break
+        t_scan = time.perf_counter()
         scan = frame_calls(pipe, k, int(counts[k]), fresh, steps)
-        order = list(live)
+        order = [label for label in live if label not in stopped]
         for label in order[k % max(len(order), 1) :] + order[: k % max(len(order), 1)]:
             t0 = time.perf_counter()
             try:
@@ -256,57 +306,18 @@ def measure(pipe: Pipeline, runs: dict[Label, Any], threads: int | None, deadlin
                 samples.pop(label)
                 continue
             samples[label].append(time.perf_counter() - t0)
-        scans = k
-        if k >= MIN_TIMED_SCANS and time.perf_counter() >= deadline:
-            break
+        scans, scan_s = k, time.perf_counter() - t_scan
+        if not budget.fits(deadline, scan_s * (STREAM_SCANS - 1 - k)):  # the stream will not end in time
+            stopped |= budget.clearly_slower(samples, disagree)
     pipe.coefficients()  # a sampler keeps the last plan's re-noising: the manifest's again
-    return Samples({lb: np.asarray(v) * 1e3 for lb, v in samples.items()}, disagree, failed, scans)
-
-
-def align_rows(
-    got: list[np.ndarray], ref: list[np.ndarray], names: list[str], e2e_tol: float = AGREE_E2E_TOL
-) -> tuple[list, list, str | None]:
-    """The coarse-to-fine head's outputs (one row per gated voxel, ``voxels`` its ids) on the
-    voxels both engines gated: a voxel whose occupancy sits on the gate may fall on either side.
-    Up to ``e2e_tol`` of the voxels may be gated by one engine only; else why (one line)."""
-    if "voxels" not in names or all(a.shape == b.shape for a, b in zip(got, ref, strict=True)):
-        return got, ref, None
-    k = names.index("voxels")
-    common, ia, ib = np.intersect1d(got[k], ref[k], return_indices=True)
-    only = len(got[k]) + len(ref[k]) - 2 * len(common)
-    if only > e2e_tol * max(len(got[k]), len(ref[k])):
-        return got, ref, f"outputs differ from onnxruntime's: {only} of {len(ref[k])} gated voxels"
-    return [a[ia] for a in got], [b[ib] for b in ref], None
-
-
-def disagreement(
-    got: list[np.ndarray], ref: list[np.ndarray], names: list[str] | None = None, precision: str = "f32"
-) -> str | None:
-    """None when every output agrees within the export tolerances (``precision`` bf16: the
-    ``BF16_*`` ones), else why (one line). With ``names`` (output names), gated rows are matched
-    first (:func:`align_rows`)."""
-    bf16 = precision == "bf16"
-    rel_tol, cos_tol = (BF16_REL_TOL, BF16_COS_TOL) if bf16 else (AGREE_REL_TOL, AGREE_COS_TOL)
-    got, ref, why = align_rows(got, ref, names or [], BF16_E2E_TOL if bf16 else AGREE_E2E_TOL)
-    if why is not None:
-        return why
-    for a, b in zip(got, ref, strict=True):
-        if a.shape != b.shape:
-            return f"outputs differ from onnxruntime's: shape {a.shape} != {b.shape}"
-        x, y = a.astype(np.float64).ravel(), b.astype(np.float64).ravel()
-        if not x.size:
-            continue
-        diff, scale = float(np.max(np.abs(x - y))), float(np.max(np.abs(y)))
-        rel = diff / scale if scale > 0 else diff
-        norm = float(np.linalg.norm(x) * np.linalg.norm(y))
-        cos = float(x @ y / norm) if norm > 0 else (1.0 if diff == 0 else 0.0)
-        if rel > rel_tol or cos < 1.0 - cos_tol:
-            return f"outputs differ from onnxruntime's: max rel {rel:.2e}, cosine {cos:.9f}"
-    return None
+    ms = {label: np.asarray(v) * 1e3 for label, v in samples.items()}
+    return Samples(ms, disagree, failed, scans, tuple(deferred))
 
 
 def paired(calls: dict[str, np.ndarray], over: str, under: str) -> tuple[dict[str, float], float]:
     """(median ms a scan by engine, median over the scans of ``over``'s time / ``under``'s) of
     :func:`measure`'s samples: paired by scan, because the scans differ in size and both ran
-    each one back to back."""
-    return {e: float(np.median(v)) for e, v in calls.items()}, float(np.median(calls[over] / calls[under]))
+    each one back to back; over the scans all of them ran (a session stopped early ran fewer)."""
+    n = min(len(v) for v in calls.values())
+    medians = {e: float(np.median(v[:n])) for e, v in calls.items()}
+    return medians, float(np.median(calls[over][:n] / calls[under][:n]))

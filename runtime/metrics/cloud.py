@@ -158,3 +158,25 @@ def score_frame(
         mmd=mmd(hp, hr),
         num_points=int(len(pred)),
     )
+
+
+def scene_scores(
+    pred: np.ndarray, ref: np.ndarray, xy_range: tuple[float, float, float, float]
+) -> dict[str, float]:
+    """The scene metrics a decoding choice is judged on, from one nearest-neighbour pass:
+    {"cd", "mhd", "fscore@0.2", "fscore@0.5", "jsd"}, each equal to its function above (``score_frame``
+    computes them one by one, with MMD and the squared CD)."""
+    hp, hr = bev_histogram(pred, xy_range), bev_histogram(ref, xy_range)
+    pd = PairDistances.of(pred, ref)
+    if pd is None:
+        nan = float("nan")
+        empty_f = 0.0 if len(ref) else nan
+        return {"cd": nan, "mhd": nan, "fscore@0.2": empty_f, "fscore@0.5": empty_f, "jsd": jsd(hp, hr)}
+    a, b = float(np.mean(pd.pred_to_ref)), float(np.mean(pd.ref_to_pred))
+    out = {"cd": float(0.5 * (a + b)), "mhd": float(max(a, b))}
+    for t in (0.2, 0.5):
+        precision = float(np.mean(pd.pred_to_ref < t))
+        recall = float(np.mean(pd.ref_to_pred < t))
+        both = precision + recall
+        out[f"fscore@{t}"] = 0.0 if both == 0 else 2 * precision * recall / both
+    return out | {"jsd": jsd(hp, hr)}

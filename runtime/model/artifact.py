@@ -27,6 +27,7 @@ import numpy as np
 from msdnet.runtime.engine.cosine_logsnr import sampler_settings
 from msdnet.runtime.engine.ddim import DiffusionConfig, alphas_cumprod, timesteps
 from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.range_threshold import RangeThresholds, range_thresholds_from
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.onnx_check import external_tensors
@@ -79,6 +80,9 @@ class Artifact:
     # keep an input radar point as it is when the head's occupancy around its voxel reaches this
     # (manifest ``keep_radar_threshold``; ``decode.radar_confidence_*``); None: keep none
     keep_threshold: float | None = None
+    # one decoding threshold per band of horizontal range (manifest ``range_thresholds``,
+    # ``engine.range_threshold``); None: ``threshold`` everywhere
+    range_thresholds: RangeThresholds | None = None
 
 
 def _need(obj: dict[str, Any], key: str, where: Path, kind: type | tuple[type, ...]) -> Any:
@@ -248,6 +252,9 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
         if isinstance(keep, bool) or not isinstance(keep, (int, float)) or not 0.0 <= keep <= 1.0:
             raise MsdnetError(where, f"keep_radar_threshold {keep!r} must be a number in [0, 1]")
         keep = float(keep)
+    bands = manifest.get("range_thresholds")
+    if bands is not None:
+        bands = range_thresholds_from(bands, where)
     return Artifact(
         root=root,
         manifest=manifest,
@@ -260,4 +267,5 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
         graphs=graphs,
         gate=gate,
         keep_threshold=keep,
+        range_thresholds=bands,
     )
