@@ -150,3 +150,38 @@ def test_bands_command_writes_the_pick(tmp_path, astyx_root):
         assert out.exit_code != 0 and opt in out.output
     out = CliRunner().invoke(main, [*args, "--edges", "20,10"])
     assert out.exit_code != 0 and "--edges" in out.output
+
+
+def test_kernels_decode_each_band_at_its_threshold():
+    """decode_packed / decode_sparse with bands give exactly the points of a decode at the lowest
+    threshold filtered by ``RangeThresholds.keep`` (same order), and without bands what they gave."""
+    from msdnet.runtime.engine.decode import decode_packed, decode_sparse, packed_shape
+    from msdnet.runtime.engine.grid import GridConfig
+
+    grid = GridConfig((0.0, -3.2, -0.6, 6.4, 3.2, 0.6), (0.2, 0.2, 0.3))  # (D, H, W) = (4, 32, 32)
+    rng = np.random.default_rng(1)
+    half = packed_shape(grid)
+    occ = rng.random((8, *half), dtype=np.float32)
+    off = rng.uniform(-0.1, 0.1, (8, 3, *half)).astype(np.float32)
+    rt = RangeThresholds((2.0, 4.5), (0.3, 0.6, 0.8))
+    lo_pts, lo_conf = decode_packed(occ, off, grid, rt.lowest)
+    keep = rt.keep(lo_pts, lo_conf)
+    assert 0 < keep.sum() < len(keep)
+    pts, conf = decode_packed(occ, off, grid, 0.5, rt)
+    np.testing.assert_array_equal(pts, lo_pts[keep])
+    np.testing.assert_array_equal(conf, lo_conf[keep])
+    # the coarse-to-fine layout: a subset of half-scale voxels, rows (N, 8)
+    vox = np.sort(rng.choice(int(np.prod(half)), size=int(np.prod(half)) // 2, replace=False))
+    z2, y2, x2 = np.unravel_index(vox, half)
+    s_occ = occ[:, z2, y2, x2].T.copy()  # (N, 8)
+    s_off = off[:, :, z2, y2, x2].transpose(2, 0, 1).copy()  # (N, 8, 3)
+    s_lo, s_lo_conf = decode_sparse(s_occ, s_off, vox, grid, rt.lowest)
+    s_pts, s_conf = decode_sparse(s_occ, s_off, vox, grid, 0.5, rt)
+    s_keep = rt.keep(s_lo, s_lo_conf)
+    np.testing.assert_array_equal(s_pts, s_lo[s_keep])
+    np.testing.assert_array_equal(s_conf, s_lo_conf[s_keep])
+    # one band everywhere is the single threshold
+    one = RangeThresholds((100.0,), (0.5, 0.5))
+    np.testing.assert_array_equal(
+        decode_packed(occ, off, grid, 0.1, one)[0], decode_packed(occ, off, grid, 0.5)[0]
+    )

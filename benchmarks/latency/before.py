@@ -6,8 +6,9 @@ Both pipelines are loaded fresh at the run's provider (by default ``auto``, the 
 per input shape, and the run's other measurements have shown the new pipeline's own sessions the
 timing input and the stream. Both are warmed up on the timing input, then each scan of the stream
 runs through both, one after the other, the order swapped every scan, so both see the same load.
-The new pipeline keeps the run's gate and threshold; the previous one its manifest's (or, against
-a random new model, a threshold leaving the same number of points, as ``--against-old`` does).
+A given model decodes as its manifest says (threshold or range thresholds, keep rule), the previous
+one as its own; against a random new model, the new keeps the run's gate and threshold and the
+previous one gets a threshold leaving the same number of points, as ``--against-old`` does.
 
 The result holds each pipeline's stage medians and the ratios the speed goals name:
 ``frame_over_before`` (whole frame, new median / previous median) and ``encoder_over_before``
@@ -51,7 +52,7 @@ def _engines(pipe: Pipeline) -> dict[str, str]:
     return {f: names[getattr(s, "precision", None)] for f, s in pipe.sessions.items()}
 
 
-def _described(pipe: Pipeline, acc: StageRuns, threshold: float) -> dict[str, Any]:
+def _described(pipe: Pipeline, acc: StageRuns, threshold: float | None) -> dict[str, Any]:
     stages = {k: v["median"] for k, v in acc.summaries().items()}
     return {
         "folder": str(pipe.artifact.root),
@@ -63,7 +64,12 @@ def _described(pipe: Pipeline, acc: StageRuns, threshold: float) -> dict[str, An
         "encoder_form": pipe.artifact.manifest.get("encoder_form", "rulebook"),
         "provider": pipe.provider,
         "engines": _engines(pipe),
-        "threshold": threshold,
+        "threshold": pipe.artifact.threshold if threshold is None else threshold,
+        "threshold_note": "given" if threshold is not None else "the manifest's rules",
+        "range_thresholds": None
+        if threshold is not None or pipe.range_thresholds is None
+        else pipe.range_thresholds.to_json(),
+        "keep_radar_threshold": pipe.keep_threshold if threshold is None else None,
         "decoded": acc.decoded,
     }
 
@@ -73,14 +79,16 @@ def before_comparison(
     before: Pipeline,
     warm: Scan,
     scans: list[Scan],
-    thresholds: tuple[float, float],
+    thresholds: tuple[float | None, float | None],
     source: str,
     seed: int = 0,
 ) -> dict[str, Any]:
     """Time ``new`` against ``before`` (both fresh and warm, gates set) on ``scans``, each scan once
     through each, in alternating order (module docstring); ``warm`` (the timing input) first, once
-    each, untimed. ``thresholds``: (new, before). Scans are named point clouds or arrays in the new
-    model's columns. -> both pipelines' stage medians, the ratios of ``RATIO_STAGES`` and per scan."""
+    each, untimed. ``thresholds``: (new, before); None decodes as the model's manifest says
+    (its threshold or range thresholds, and its keep rule), as ``msdnet-infer`` does. Scans are
+    named point clouds or arrays in the new model's columns. -> both pipelines' stage medians, the
+    ratios of ``RATIO_STAGES`` and per scan."""
     if not scans:
         raise ValueError("before_comparison needs at least one scan")
     pipes = {"new": (new, thresholds[0]), "before": (before, thresholds[1])}

@@ -115,6 +115,8 @@ def _before(
     if pair.msdnet.weights == "random":
         new.gate = msd.gate  # the run's gate; a given model runs as msdnet-infer runs it
     prev = load_before(Path(cfg.before), cfg.provider, cfg.threads)
+    if pair.msdnet.weights != "random":  # each decodes as its manifest says (range thresholds, keep rule)
+        return before_comparison(new, prev, points, scans, (None, None), source, cfg.seed)
     prev_thr = before_threshold(prev, pair.msdnet.weights, points, msd, _target(msd, cfg), cfg.seed)
     return before_comparison(new, prev, points, scans, (thr, prev_thr), source, cfg.seed)
 

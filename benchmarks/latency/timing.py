@@ -120,7 +120,7 @@ class StageRuns:
 
 
 def time_stages(
-    pipe: Pipeline, points: Scan, steps: int | None, threshold: float, repeats: int, seed: int = 0
+    pipe: Pipeline, points: Scan, steps: int | None, threshold: float | None, repeats: int, seed: int = 0
 ) -> StageRuns:
     """Run ``pipe`` ``repeats`` times (already warm) and collect the STAGES times."""
     runs = StageRuns({k: [] for k in STAGES})

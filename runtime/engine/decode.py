@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.engine.range_threshold import RangeThresholds
 from msdnet.runtime.engine.voxelize import grid_arrays
 
 
@@ -38,6 +39,20 @@ def _put_point(points: np.ndarray, t: int, lo: np.ndarray, size: np.ndarray, x: 
     points[t, 0] = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(dx))
     points[t, 1] = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(dy))
     points[t, 2] = np.float32(lo[2] + (z + 0.5) * size[2] + np.float64(dz))
+
+
+@njit(cache=True, inline="always")
+def _passes(
+    occ: np.float32, px: np.float32, py: np.float32, edges2: np.ndarray, thresholds: np.ndarray
+) -> bool:
+    """occ > the threshold of the band of horizontal range of the point [px, py] (float32, as
+    stored): band = the number of ``edges2`` (squared edges, float64) <= px^2 + py^2 in float64
+    (``RangeThresholds.per_point``'s rule)."""
+    r2 = np.float64(px) * np.float64(px) + np.float64(py) * np.float64(py)
+    b = 0
+    while b < edges2.shape[0] and edges2[b] <= r2:
+        b += 1
+    return occ > thresholds[b]
 
 
 @njit(cache=True)
@@ -97,19 +112,33 @@ def _decode_packed_kernel(
     shape_zyx: np.ndarray,
     lo: np.ndarray,
     size: np.ndarray,
-    threshold: float,
+    edges2: np.ndarray,
+    thresholds: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """occupancy (8, D2, H2, W2), offsets (8, 3, D2, H2, W2) packed; shape_zyx (3,) int64 the
-    dense (D, H, W) -> points (M, 3) float32, confidence (M,) in dense linear-index order."""
+    dense (D, H, W); edges2 (B - 1,) float64 squared range edges, thresholds (B,) float32 (no edge:
+    one threshold) -> points (M, 3) float32, confidence (M,) in dense linear-index order."""
     d, h, w = shape_zyx[0], shape_zyx[1], shape_zyx[2]
     hits = np.empty(d * h * w, np.int32)
     m = 0
+    lowest = thresholds.min()
     for z in range(d):
         for y in range(h):
             row = ((z & 1) * 2 + (y & 1)) * 2
             for x in range(w):
+                c = row + (x & 1)
+                occ = occupancy[c, z >> 1, y >> 1, x >> 1]
                 hits[m] = (z * h + y) * w + x
-                m += occupancy[row + (x & 1), z >> 1, y >> 1, x >> 1] > threshold
+                if edges2.shape[0] == 0:
+                    m += occ > lowest  # branch-free
+                elif occ > lowest:
+                    px = np.float32(
+                        lo[0] + (x + 0.5) * size[0] + np.float64(offsets[c, 0, z >> 1, y >> 1, x >> 1])
+                    )
+                    py = np.float32(
+                        lo[1] + (y + 0.5) * size[1] + np.float64(offsets[c, 1, z >> 1, y >> 1, x >> 1])
+                    )
+                    m += _passes(occ, px, py, edges2, thresholds)
     points = np.empty((m, 3), np.float32)
     confidence = np.empty(m, np.float32)
     for t in range(m):
@@ -130,10 +159,23 @@ def packed_shape(grid: GridConfig) -> tuple[int, int, int]:
     return tuple((n + 1) // 2 for n in grid.shape_zyx)  # type: ignore[return-value]
 
 
+def _band_arrays(threshold: float, bands: RangeThresholds | None) -> tuple[np.ndarray, np.ndarray]:
+    """(squared edges (B - 1,) float64, thresholds (B,) float32) for the kernels."""
+    if bands is None:
+        return np.empty(0, np.float64), np.asarray([threshold], np.float32)
+    return bands.squared_edges(), np.asarray(bands.thresholds, np.float32)
+
+
 def decode_packed(
-    occupancy: np.ndarray, offsets: np.ndarray, grid: GridConfig, threshold: float
+    occupancy: np.ndarray,
+    offsets: np.ndarray,
+    grid: GridConfig,
+    threshold: float,
+    bands: RangeThresholds | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``decode_occupancy`` on the packed head output, without unpacking it.
+    """``decode_occupancy`` on the packed head output, without unpacking it. With ``bands`` each
+    voxel's threshold is that of its point's band of range (``engine.range_threshold``; the same
+    points as decoding at the lowest and keeping ``bands.keep``'s), ``threshold`` unused.
 
     occupancy: (8, D2, H2, W2) float32; offsets: (8, 3, D2, H2, W2) float32 [dx, dy, dz] metres;
     ``(D2, H2, W2) == packed_shape(grid)``. Same points and order as ``decode_occupancy`` on
@@ -150,7 +192,7 @@ def decode_packed(
         raise ValueError(f"occupancy of {8 * occ[0].size} voxels exceeds the int32 index")
     lo, _, size, _ = grid_arrays(grid)
     shape = np.asarray(grid.shape_zyx, dtype=np.int64)
-    return _decode_packed_kernel(occ, off, shape, lo, size, np.float32(threshold))
+    return _decode_packed_kernel(occ, off, shape, lo, size, *_band_arrays(threshold, bands))
 
 
 @njit(cache=True)
@@ -161,11 +203,14 @@ def _decode_sparse_kernel(
     shape_zyx: np.ndarray,
     lo: np.ndarray,
     size: np.ndarray,
-    threshold: float,
+    edges2: np.ndarray,
+    thresholds: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """occupancy (N, 8), offsets (N, 8, 3), voxels (N,) int64 linear half-scale indices;
-    shape_zyx (3,) int64 the dense (D, H, W) -> points (M, 3), confidence (M,) in dense
-    linear-index order (children outside the dense grid are skipped, as the dense crop does)."""
+    shape_zyx (3,) int64 the dense (D, H, W); edges2, thresholds as ``_decode_packed_kernel`` ->
+    points (M, 3), confidence (M,) in dense linear-index order (children outside the dense grid
+    are skipped, as the dense crop does)."""
+    lowest = thresholds.min()
     d, h, w = shape_zyx[0], shape_zyx[1], shape_zyx[2]
     h2, w2 = (h + 1) // 2, (w + 1) // 2
     n = voxels.shape[0]
@@ -181,7 +226,13 @@ def _decode_sparse_kernel(
             z = 2 * z2 + (child >> 2)
             y = 2 * y2 + ((child >> 1) & 1)
             x = 2 * x2 + (child & 1)
-            if z < d and y < h and x < w and occupancy[r, child] > threshold:
+            occ = occupancy[r, child]
+            if z < d and y < h and x < w and occ > lowest:
+                if edges2.shape[0] > 0:
+                    px = np.float32(lo[0] + (x + 0.5) * size[0] + np.float64(offsets[r, child, 0]))
+                    py = np.float32(lo[1] + (y + 0.5) * size[1] + np.float64(offsets[r, child, 1]))
+                    if not _passes(occ, px, py, edges2, thresholds):
+                        continue
                 keys[m] = (z * h + y) * w + x
                 slots[m] = r * 8 + child
                 m += 1
@@ -203,9 +254,15 @@ def _decode_sparse_kernel(
 
 
 def decode_sparse(
-    occupancy: np.ndarray, offsets: np.ndarray, voxels: np.ndarray, grid: GridConfig, threshold: float
+    occupancy: np.ndarray,
+    offsets: np.ndarray,
+    voxels: np.ndarray,
+    grid: GridConfig,
+    threshold: float,
+    bands: RangeThresholds | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``decode_occupancy`` on the coarse-to-fine head's output (``onnx_spec.RECON_HEAD_SPARSE``).
+    """``decode_occupancy`` on the coarse-to-fine head's output (``onnx_spec.RECON_HEAD_SPARSE``);
+    ``bands`` as ``decode_packed``'s.
 
     occupancy: (N, 8) float32; offsets: (N, 8, 3) float32 [dx, dy, dz] metres; voxels: (N,)
     int64 linear half-scale indices ``(z2 * H2 + y2) * W2 + x2`` with ``(D2, H2, W2) ==
@@ -226,7 +283,7 @@ def decode_sparse(
         raise ValueError(f"voxel index outside the half-scale grid {half}")
     lo, _, size, _ = grid_arrays(grid)
     shape = np.asarray(grid.shape_zyx, dtype=np.int64)
-    return _decode_sparse_kernel(occ, off, vox, shape, lo, size, np.float32(threshold))
+    return _decode_sparse_kernel(occ, off, vox, shape, lo, size, *_band_arrays(threshold, bands))
 
 
 def unpack_children(packed: np.ndarray, shape_zyx: tuple[int, int, int]) -> np.ndarray:

@@ -18,7 +18,7 @@ Stages (``Result.timings`` keys, seconds):
    passes the gate (``onnx_spec.RECON_HEAD_SPARSE``), decoded by ``decode_sparse``.
 7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with range
    thresholds (manifest ``range_thresholds``, ``engine.range_threshold``) and no threshold given,
-   decoded at the lowest and each point kept when its occupancy passes its range band's; with
+   each voxel at the threshold of its point's band of range; with
    ``keep_radar`` the input radar points inside the grid box are appended (confidence 1).
    With a keep threshold (manifest ``keep_radar_threshold``, ``Pipeline.keep_threshold``) each
    input radar point inside the grid box gets a confidence from the head's own output
@@ -263,17 +263,21 @@ class Pipeline:
             self._sparse_bind.append(b)
 
     def _head(
-        self, final: int, thr: float, radar: np.ndarray | None = None
+        self,
+        final: int,
+        thr: float,
+        radar: np.ndarray | None = None,
+        bands: RangeThresholds | None = None,
     ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray | None]:
         """Head and decode stages on loop buffer ``final`` -> (points (M, 3), confidence (M,),
         half-scale voxels decoded at full scale, confidence (K,) of the ``radar`` rows (K, 3) or
-        None without them)."""
+        None without them). With ``bands`` each point is decoded at its range band's threshold."""
         grid = self.artifact.grid
         if self.gate is None:
             self._last_final = None  # sparse_head_outputs() is about the last call only
             self.sessions[onnx_spec.RECON_HEAD.file].run_with_iobinding(self._head_bind[final])
             self._timer("head")
-            pts, conf = decode_packed(self._occ[0], self._off[0], grid, thr)
+            pts, conf = decode_packed(self._occ[0], self._off[0], grid, thr, bands)
             sure = None if radar is None else radar_confidence_packed(radar, self._occ[0], grid)
             return pts, conf, int(self._occ[0, 0].size), sure
         if not self._sparse_bind:
@@ -293,7 +297,7 @@ class Pipeline:
         occ, off, vox, _ = b.get_outputs()
         self._timer("head")
         occ_np, vox_np = occ.numpy(), vox.numpy()
-        pts, conf = decode_sparse(occ_np, off.numpy(), vox_np, grid, thr)
+        pts, conf = decode_sparse(occ_np, off.numpy(), vox_np, grid, thr, bands)
         sure = None if radar is None else radar_confidence_sparse(radar, occ_np, vox_np, grid)
         return pts, conf, int(vox.shape()[0]), sure
 
@@ -420,9 +424,8 @@ class Pipeline:
         then appends the other radar rows (confidence 1.0) after them, so the output without the
         flag is again the first rows. ``stats["radar_kept"]``: the radar rows at the end.
         """
-        bands = self.range_thresholds if threshold is None else None
+        bands = self.range_thresholds if threshold is None else None  # each point its band's
         thr = self.artifact.threshold if threshold is None else float(threshold)
-        thr = bands.lowest if bands is not None else thr
         if not 0.0 < thr < 1.0:
             raise MsdnetError("threshold", f"must be in (0, 1), got {thr}")
         keep_thr = self.keep_threshold if keep_threshold is None else float(keep_threshold)
@@ -464,10 +467,9 @@ class Pipeline:
         radar = None
         if keep_radar or keep_thr is not None:
             radar = np.ascontiguousarray(pts[in_range_mask(pts, self.artifact.grid), :3])
-        out, conf, stats["head_voxels"], sure = self._head(final, thr, None if keep_thr is None else radar)
-        if bands is not None:  # decoded at the lowest band threshold: drop what is under its own
-            by_range = bands.keep(out, conf)
-            out, conf = np.ascontiguousarray(out[by_range]), conf[by_range]
+        out, conf, stats["head_voxels"], sure = self._head(
+            final, thr, None if keep_thr is None else radar, bands
+        )
         n_model = len(out)
         if radar is not None:
             extra, extra_conf = [radar], [np.ones(radar.shape[0], np.float32)]

@@ -8,9 +8,11 @@ decoded point:
 
     band 0: r < edges_m[0],  band k: edges_m[k-1] <= r < edges_m[k],  last band: r >= edges_m[-1]
 
-The runtime decodes at the lowest of them and drops the points under their band's threshold (the
-same points a decode at each band's threshold would give: a voxel's occupancy and offset do not
-depend on the threshold). ``python -m msdnet.export.bands`` chooses them on the selection slice.
+The decoder compares each voxel's occupancy with its point's band threshold as it decodes
+(``decode._passes``): the same points as decoding at each band's threshold and keeping that band's,
+since a voxel's occupancy and offset do not depend on the threshold (r compared as x^2 + y^2
+against the squared edges, in float64). ``python -m msdnet.export.bands`` chooses them on the
+selection slice.
 """
 
 from __future__ import annotations
@@ -48,10 +50,17 @@ class RangeThresholds:
         """The threshold to decode at before :meth:`keep` drops the rest."""
         return min(self.thresholds)
 
+    def squared_edges(self) -> np.ndarray:
+        """(B - 1,) float64: the edges squared (bands are compared on x^2 + y^2)."""
+        edges = np.asarray(self.edges_m, np.float64)
+        return edges * edges
+
     def per_point(self, points: np.ndarray) -> np.ndarray:
-        """points (M, >=3) [x, y, z, ...] metres -> (M,) float32 the threshold of each one's band."""
-        r = np.hypot(points[:, 0].astype(np.float64), points[:, 1].astype(np.float64))
-        band = np.searchsorted(np.asarray(self.edges_m), r, side="right")  # (M,) in 0..len(edges)
+        """points (M, >=3) [x, y, z, ...] metres -> (M,) float32 the threshold of each one's band:
+        the number of squared edges <= x^2 + y^2, in float64 from the float32 coordinates (the
+        decode kernels' rule, ``decode._passes``)."""
+        x, y = points[:, 0].astype(np.float64), points[:, 1].astype(np.float64)
+        band = np.searchsorted(self.squared_edges(), x * x + y * y, side="right")  # (M,) 0..len(edges)
         return np.asarray(self.thresholds, np.float32)[band]
 
     def keep(self, points: np.ndarray, confidence: np.ndarray) -> np.ndarray:
