@@ -77,7 +77,9 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @click.option("--format", "fmt", type=click.Choice(WRITE_FORMATS), default="npy", show_default=True)
 @click.option("--steps", type=click.IntRange(min=1), help="DDIM steps [manifest T_m].")
-@click.option("--threshold", type=float, help="Occupancy threshold [manifest].")
+@click.option(
+    "--threshold", type=float, help="One occupancy threshold everywhere [manifest: its one, or by range]."
+)
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Noise seed.")
 @click.option("--png", is_flag=True, help="Also write a BEV picture per file.")
 @click.option(
