@@ -17,16 +17,16 @@ manifest's single threshold on all five; when none is, the manifest keeps its si
 from __future__ import annotations
 
 import itertools
-import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import click
 import numpy as np
 from tqdm import tqdm
 
-from msdnet.export.keep import SCENE, at_least_as_good
+from msdnet.export.keep import at_least_as_good, slice_ids, table_row
+from msdnet.export.manifest_fields import update_manifest
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.range_threshold import RangeThresholds
 from msdnet.runtime.errors import MsdnetError, one_line_errors
@@ -54,12 +54,6 @@ class BandCalibration:
 
 def _name(ts: tuple[float, ...]) -> str:
     return "/".join(f"{t:g}" for t in ts)
-
-
-def _mean(rows: list[dict[str, float]], key: str) -> float:
-    arr = np.asarray([r[key] for r in rows], dtype=np.float64)
-    arr = arr[np.isfinite(arr)]
-    return float(arr.mean()) if arr.size else float("nan")
 
 
 def calibrate_bands(
@@ -96,7 +90,7 @@ def calibrate_bands(
             pred = crop_to_grid(np.concatenate([pts[keep], radar]), grid)
             rows.append(scene_scores(pred, ref, area))
             points.append(len(pred))
-        table[name] = {k: _mean(rows, k) for k in SCENE} | {"points": float(np.mean(points))}
+        table[name] = table_row(rows, points)
     passing = [c for c in combos if at_least_as_good(table[_name(c.thresholds)], table["single"])]
     pick = min(passing, key=lambda c: table[_name(c.thresholds)]["cd"], default=None)
     return BandCalibration(
@@ -107,15 +101,10 @@ def calibrate_bands(
 def write_bands(folder: Path, cal: BandCalibration, split: str) -> None:
     """Record ``cal`` in ``folder``'s manifest atomically (no pick: the field is removed). Only
     manifest.json changes; a signature over it must be made again."""
-    path = Path(folder) / MANIFEST
-    manifest = json.loads(path.read_text(encoding="utf-8"))
-    manifest.pop("range_thresholds", None)
+    fields: dict[str, Any] = {"range_thresholds_calibration": asdict(cal) | {"split": split}}
     if cal.thresholds is not None:
-        manifest["range_thresholds"] = {"edges_m": cal.edges_m, "thresholds": cal.thresholds}
-    manifest["range_thresholds_calibration"] = asdict(cal) | {"split": split}
-    tmp = path.with_name(f".{MANIFEST}.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+        fields["range_thresholds"] = {"edges_m": cal.edges_m, "thresholds": cal.thresholds}
+    update_manifest(folder, fields, drop=("range_thresholds",))
 
 
 def calibration_markdown(cal: BandCalibration, top: int = 10) -> str:
@@ -192,9 +181,7 @@ def main(
     except ValueError as err:
         raise MsdnetError("--edges", str(err)) from None
     ds = open_dataset(dataset, data)
-    ids = [f for f in ds.frame_ids if first <= f <= last and len(f) == len(first)]
-    if not ids:
-        raise MsdnetError(data, f"has no frames {first}..{last}")
+    ids = slice_ids(ds, data, first, last)
     pipe = Pipeline.from_dir(model)
     cal = calibrate_bands(pipe, ds, ids, edge_m, cands, seed)
     click.echo(calibration_markdown(cal), nl=False)

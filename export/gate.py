@@ -25,6 +25,7 @@ import click
 import numpy as np
 from tqdm import tqdm
 
+from msdnet.export.manifest_fields import update_manifest
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.model import onnx_spec
@@ -152,23 +153,16 @@ def add_sparse_head(
     size, digest = file_digest(folder / spec.file)
     entry = {"name": spec.file.removesuffix(".onnx"), "file": spec.file, "bytes": size, "sha256": digest}
     entry |= {"inputs": list(spec.inputs), "outputs": list(spec.outputs)}
-    manifest["graphs"] = [g for g in manifest["graphs"] if g.get("file") != spec.file] + [entry]
-    _write_manifest(folder, {**manifest, "gate": None})  # the dense head until calibrated
+    graphs = [g for g in manifest["graphs"] if g.get("file") != spec.file] + [entry]
+    update_manifest(folder, {"graphs": graphs, "gate": None})  # the dense head until calibrated
     held_out = float(state.dataset.get("holdout", 0.0) or 0.0) > 0
     fit, select = run_splits(dataset, str(data), cfg, state.dataset)
     frames_ds = select if held_out else fit
     scans = [frames_ds[i][0] for i in pick_frames(len(frames_ds), frames)]
     cal = calibrate_gate(Pipeline.from_dir(folder), scans, art.threshold, recall)
-    manifest["gate"] = cal.gate
-    manifest["gate_calibration"] = asdict(cal) | {"split": "selection slice" if held_out else "training"}
-    _write_manifest(folder, manifest)
+    split = "selection slice" if held_out else "training"
+    update_manifest(folder, {"gate": cal.gate, "gate_calibration": asdict(cal) | {"split": split}})
     return cal
-
-
-def _write_manifest(folder: Path, manifest: dict) -> None:
-    tmp = folder / f".{MANIFEST}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, folder / MANIFEST)
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})

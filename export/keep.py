@@ -19,21 +19,19 @@ five; when none is, the lowest CD (and the manifest says so).
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
 
 import click
 import numpy as np
 from tqdm import tqdm
 
+from msdnet.export.manifest_fields import update_manifest
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.io.datasets import FrameDataset, open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
-from msdnet.runtime.metrics.cloud import score_frame
+from msdnet.runtime.metrics.cloud import scene_scores
 from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
 from msdnet.runtime.model.artifact import MANIFEST
 
@@ -55,20 +53,25 @@ class KeepCalibration:
     table: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
-def _row(scores: list[Any], points: list[int]) -> dict[str, float]:
+def table_row(rows: list[dict[str, float]], points: list[int]) -> dict[str, float]:
+    """Per-frame ``scene_scores`` and point counts -> {SCENE metric: mean over the frames where it
+    is finite, "points": mean points per frame}."""
+
     def mean(values: list[float]) -> float:
         arr = np.asarray(values, dtype=np.float64)
         arr = arr[np.isfinite(arr)]
         return float(arr.mean()) if arr.size else float("nan")
 
-    return {
-        "cd": mean([s.cd for s in scores]),
-        "mhd": mean([s.mhd for s in scores]),
-        "fscore@0.2": mean([s.fscore[0.2] for s in scores]),
-        "fscore@0.5": mean([s.fscore[0.5] for s in scores]),
-        "jsd": mean([s.jsd for s in scores]),
-        "points": float(np.mean(points)) if points else float("nan"),
-    }
+    table = {k: mean([r[k] for r in rows]) for k in SCENE}
+    return table | {"points": float(np.mean(points)) if points else float("nan")}
+
+
+def slice_ids(ds: FrameDataset, data: Path, first: str, last: str) -> list[str]:
+    """The frame ids FIRST..LAST of ``ds`` (ids of FIRST's length); a one-line error when none."""
+    ids = [f for f in ds.frame_ids if first <= f <= last and len(f) == len(first)]
+    if not ids:
+        raise MsdnetError(data, f"has no frames {first}..{last}")
+    return ids
 
 
 def at_least_as_good(row: dict[str, float], base: dict[str, float]) -> bool:
@@ -92,7 +95,7 @@ def calibrate_keep(
     grid = pipe.artifact.grid
     area = xy_range(grid)
     names = ["model", "keep all", *(f"{t:g}" for t in candidates)]
-    scores: dict[str, list[Any]] = {n: [] for n in names}
+    scores: dict[str, list[dict[str, float]]] = {n: [] for n in names}
     points: dict[str, list[int]] = {n: [] for n in names}
     for fid in tqdm(frame_ids, desc="keep threshold", unit="frame", disable=not progress or None):
         frame = preprocess_frame(ds.get(fid), grid)
@@ -109,9 +112,9 @@ def calibrate_keep(
             else:
                 pred = np.concatenate([model, radar[conf >= np.float32(float(name))]])
             pred = crop_to_grid(pred, grid)
-            scores[name].append(score_frame(pred, ref, area))
+            scores[name].append(scene_scores(pred, ref, area))
             points[name].append(len(pred))
-    table = {n: _row(scores[n], points[n]) for n in names}
+    table = {n: table_row(scores[n], points[n]) for n in names}
     base = table["keep all"]
     passing = [t for t in candidates if at_least_as_good(table[f"{t:g}"], base)]
     pool = passing or list(candidates)
@@ -122,13 +125,8 @@ def calibrate_keep(
 def write_keep(folder: Path, cal: KeepCalibration, split: str) -> None:
     """Record ``cal`` in ``folder``'s manifest (``keep_radar_threshold``, ``keep_radar_calibration``),
     atomically. Only manifest.json changes; a signature over it must be made again."""
-    path = Path(folder) / MANIFEST
-    manifest = json.loads(path.read_text(encoding="utf-8"))
-    manifest["keep_radar_threshold"] = cal.threshold
-    manifest["keep_radar_calibration"] = asdict(cal) | {"split": split}
-    tmp = path.with_name(f".{MANIFEST}.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    fields = {"keep_radar_threshold": cal.threshold, "keep_radar_calibration": asdict(cal) | {"split": split}}
+    update_manifest(folder, fields)
 
 
 def calibration_markdown(cal: KeepCalibration) -> str:
@@ -173,9 +171,7 @@ def main(
     except ValueError:
         raise MsdnetError("--candidates", f"expected comma-separated numbers, got {candidates!r}") from None
     ds = open_dataset(dataset, data)
-    ids = [f for f in ds.frame_ids if first <= f <= last and len(f) == len(first)]
-    if not ids:
-        raise MsdnetError(data, f"has no frames {first}..{last}")
+    ids = slice_ids(ds, data, first, last)
     pipe = Pipeline.from_dir(model)
     cal = calibrate_keep(pipe, ds, ids, cands, seed)
     click.echo(calibration_markdown(cal), nl=False)
