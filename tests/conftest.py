@@ -33,6 +33,22 @@ def vod_root() -> Path:
     return VOD_ROOT
 
 
+@pytest.fixture(scope="module")
+def student_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny random MSDNet student exported to a folder (``export_helpers.make_artifact``)."""
+    from export_helpers import make_artifact
+
+    return make_artifact(tmp_path_factory.mktemp("art"), "student")
+
+
+@pytest.fixture(scope="module")
+def scan(vod_root: Path):
+    """One real VoD radar scan (frame 00549) as a PointCloud."""
+    from msdnet.runtime import read_cloud
+
+    return read_cloud(vod_root / "radar" / "training" / "velodyne" / "00549.bin")
+
+
 @pytest.fixture(scope="session")
 def astyx_root() -> Path:
     if not ASTYX_ROOT.is_dir():

@@ -5,13 +5,12 @@ threshold choice (``export.keep``)."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 from export_helpers import copy_artifact, make_artifact
 
-from msdnet.runtime import MsdnetError, Pipeline, PointCloud, read_cloud
+from msdnet.runtime import MsdnetError, Pipeline, PointCloud
 from msdnet.runtime.engine.decode import (
     packed_shape,
     radar_confidence_packed,
@@ -103,18 +102,8 @@ def test_confidence_refuses_bad_shapes():
 
 
 @pytest.fixture(scope="module")
-def student_dir(tmp_path_factory) -> Path:
-    return make_artifact(tmp_path_factory.mktemp("art"), "student")
-
-
-@pytest.fixture(scope="module")
 def pipe(student_dir) -> Pipeline:
     return Pipeline.from_dir(student_dir, threads=1)
-
-
-@pytest.fixture(scope="module")
-def scan(vod_root) -> PointCloud:
-    return read_cloud(vod_root / "radar" / "training" / "velodyne" / "00549.bin")
 
 
 def _radar(pipe: Pipeline, scan: PointCloud) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from export_helpers import copy_artifact, make_artifact
 
-from msdnet.runtime import MsdnetError, Pipeline, PointCloud, read_cloud
+from msdnet.runtime import MsdnetError, Pipeline, PointCloud
 from msdnet.runtime.engine.decode import decode_packed
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import load_artifact
@@ -20,18 +20,8 @@ STAGES = {"prepare", "voxelize", "encoder", "adapter", "denoise", "head", "decod
 
 
 @pytest.fixture(scope="module")
-def student_dir(tmp_path_factory) -> Path:
-    return make_artifact(tmp_path_factory.mktemp("art"), "student")
-
-
-@pytest.fixture(scope="module")
 def pipe(student_dir) -> Pipeline:
     return Pipeline.from_dir(student_dir, threads=1)
-
-
-@pytest.fixture(scope="module")
-def scan(vod_root) -> PointCloud:
-    return read_cloud(vod_root / "radar" / "training" / "velodyne" / "00549.bin")
 
 
 def test_api_on_a_real_scan(pipe, scan):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from export_helpers import copy_artifact, make_artifact
 
-from msdnet.runtime import MsdnetError, Pipeline, PointCloud, read_cloud
+from msdnet.runtime import MsdnetError, Pipeline
 from msdnet.runtime.engine.range_threshold import RangeThresholds, range_thresholds_from
 from msdnet.runtime.metrics.cloud import scene_scores, score_frame
 from msdnet.runtime.model.artifact import load_artifact
@@ -75,16 +75,6 @@ def test_scene_scores_equal_the_metrics_one_by_one():
 
 
 # ---------------------------------------------------------------- the Pipeline
-
-
-@pytest.fixture(scope="module")
-def student_dir(tmp_path_factory) -> Path:
-    return make_artifact(tmp_path_factory.mktemp("art"), "student")
-
-
-@pytest.fixture(scope="module")
-def scan(vod_root) -> PointCloud:
-    return read_cloud(vod_root / "radar" / "training" / "velodyne" / "00549.bin")
 
 
 def _with_bands(student_dir: Path, where: Path, block: object) -> Path:
