@@ -114,38 +114,12 @@ def test_distillation_trains_only_the_denoiser_toward_the_long_loop(recovered, a
     assert np.isfinite(last["val_distill_occ"]) and last["train_span"] > 0
 
 
-def test_radar_path_fine_tune_moves_only_encoder_rgfd_and_adapter(recovered, astyx_root, tmp_path):
-    """--radar-path-only on a recovered checkpoint (no teacher LiDAR branch): encoder, RGFD and
-    adapter learn Eq. 7 plus the radar-return term; the denoiser and the head stay exactly as they
-    were, and the log carries the new terms and the adapter's gate."""
-    out = tmp_path / "rp"
-    args = _args(astyx_root, recovered, out, "--radar-path-only", "--radar-keep", "2")
-    r = CliRunner().invoke(train_main, [*args, "--lr", "1e-3", "--epochs", "1"])
-    assert r.exit_code == 0, r.output
-    before = load_checkpoint(recovered)[0].state_dict()
-    after, cfg, state = load_checkpoint(out / "last")
-    after = after.state_dict()
-    moved = {k.split(".")[0] for k in before if not torch.equal(before[k], after[k])}
-    assert moved == {"encoder", "rgfd", "adapter"}
-    assert (
-        cfg == read_checkpoint(recovered)[1] and state.train.radar_path_only and state.train.radar_keep == 2
-    )
-    epoch = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()][-2]
-    assert epoch["event"] == "epoch" and epoch["train_radar_keep"] > 0 and 0 <= epoch["val_radar_kept"] <= 1
-    assert 0 < epoch["val_gate"] <= 1
-    total = epoch["train_recon"] + 2 * epoch["train_radar_keep"]
-    assert epoch["train_loss"] == pytest.approx(total, rel=1e-5)
-
-
 def test_distillation_options_are_checked(recovered, exported, astyx_root, tmp_path):
     cases = [
         (["--distill", "8"], "--loop-steps"),  # no K
         (["--distill", "2", "--loop-steps", "2"], "--distill"),  # K must be < N
         (["--distill-head", "1"], "--distill-head"),  # without --distill
         (["--loop-steps", "1"], "read back from an exported model"),  # full training on a recovered one
-        (["--radar-keep", "1"], "--radar-path-only"),  # without --radar-path-only
-        (["--radar-path-only", "--radar-keep", "-1"], "--radar-keep"),
-        (["--radar-path-only", "--head-only"], "--radar-path-only"),
     ]
     for extra, message in cases:
         r = CliRunner().invoke(train_main, _args(astyx_root, recovered, tmp_path / "x", *extra))

@@ -147,9 +147,6 @@ class StudentModel(_FrozenTeacherMixin):
         # --distill: (frozen step, its (N, 3) coefficients), kept out of the state_dict
         self._distill_from: tuple[nn.Module, Tensor] | None = None
         self.distill_head = 0.0  # weight of the occupancy term (TrainConfig.distill_head)
-        # --radar-path-only: encoder, RGFD and adapter learn Eq. 7 through the frozen loop and head
-        self.radar_path_only = False
-        self.radar_keep = 0.0  # weight of the radar-return term (TrainConfig.radar_keep)
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
         self.register_buffer("train_coeffs", torch.tensor(train_coeffs), persistent=False)
 
@@ -197,8 +194,6 @@ class StudentModel(_FrozenTeacherMixin):
         adapter gate delta; a diagnostic, not in the loss)}."""
         if self.head_only:
             return self._head_losses(batch)
-        if self.radar_path_only:
-            return self._radar_path_losses(batch)
         if self._distill_from is not None:
             return self._distill_losses(batch)
         w = self.cfg.losses
@@ -287,29 +282,6 @@ class StudentModel(_FrozenTeacherMixin):
         terms = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, self.cfg.losses)
         return {"loss": terms["recon"], **terms}
 
-    def _radar_path_losses(self, batch: Batch) -> dict[str, Tensor]:
-        """Eq. 7 on F_r^D at the training loop's T_m, reaching only encoder, RGFD and adapter (the
-        denoiser and head are frozen; no teacher latent is needed, so a checkpoint recovered from
-        graphs can train), plus ``radar_keep`` x the BCE pulling up the full-scale occupancy of
-        the voxels that hold both a radar return and LiDAR (returns on a real surface):
-        {"loss", "recon", per-scale occ/off, "radar_keep", "radar_kept" (share of those voxels
-        at occupancy >= the config threshold; a diagnostic), "gate" (mean adapter delta)}."""
-        f_r = self.reconstructed(batch.radar)
-        f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
-        preds = self.head.multi_scale(f_d)
-        terms = reconstruction_loss(preds, batch.targets, self.cfg.losses)
-        logits = preds[-1][0][:, 0]  # (B, D, H, W) full-scale occupancy logits
-        occ_t = batch.targets[-1][0]  # (B, D, H, W) LiDAR voxels {0, 1}
-        c = batch.radar.level_coords[0]  # (V, 4) [b, z, y, x] full-scale radar voxels
-        on_surface = occ_t[c[:, 0], c[:, 1], c[:, 2], c[:, 3]] > 0
-        hits = logits[c[on_surface, 0], c[on_surface, 1], c[on_surface, 2], c[on_surface, 3]]  # (K,)
-        keep = torch.nn.functional.softplus(-hits).mean() if len(hits) else logits.new_zeros(())
-        with torch.no_grad():
-            kept = (torch.sigmoid(hits) >= self.cfg.threshold).float().mean() if len(hits) else keep
-            gate = self.adapter.gate(f_r).mean() if isinstance(self.adapter, NoiseAdapter) else keep
-        total = terms["recon"] + self.radar_keep * keep
-        return {"loss": total, **terms, "radar_keep": keep, "radar_kept": kept, "gate": gate}
-
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
     ) -> tuple[Tensor, Tensor]:
@@ -369,29 +341,6 @@ class R2LDMModel(_FrozenTeacherMixin):
             other = cond.roll(1, dims=0) if cond.shape[0] > 1 else cond.flip(-1)
             out["diff_shuffled"] = eps_loss(self.unet(x_t, t, other), eps)
         return out
-
-    def _radar_path_losses(self, batch: Batch) -> dict[str, Tensor]:
-        """Eq. 7 on F_r^D at the training loop's T_m, reaching only encoder, RGFD and adapter (the
-        denoiser and head are frozen; no teacher latent is needed, so a checkpoint recovered from
-        graphs can train), plus ``radar_keep`` x the BCE pulling up the full-scale occupancy of
-        the voxels that hold both a radar return and LiDAR (returns on a real surface):
-        {"loss", "recon", per-scale occ/off, "radar_keep", "radar_kept" (share of those voxels
-        at occupancy >= the config threshold; a diagnostic), "gate" (mean adapter delta)}."""
-        f_r = self.reconstructed(batch.radar)
-        f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
-        preds = self.head.multi_scale(f_d)
-        terms = reconstruction_loss(preds, batch.targets, self.cfg.losses)
-        logits = preds[-1][0][:, 0]  # (B, D, H, W) full-scale occupancy logits
-        occ_t = batch.targets[-1][0]  # (B, D, H, W) LiDAR voxels {0, 1}
-        c = batch.radar.level_coords[0]  # (V, 4) [b, z, y, x] full-scale radar voxels
-        on_surface = occ_t[c[:, 0], c[:, 1], c[:, 2], c[:, 3]] > 0
-        hits = logits[c[on_surface, 0], c[on_surface, 1], c[on_surface, 2], c[on_surface, 3]]  # (K,)
-        keep = torch.nn.functional.softplus(-hits).mean() if len(hits) else logits.new_zeros(())
-        with torch.no_grad():
-            kept = (torch.sigmoid(hits) >= self.cfg.threshold).float().mean() if len(hits) else keep
-            gate = self.adapter.gate(f_r).mean() if isinstance(self.adapter, NoiseAdapter) else keep
-        total = terms["recon"] + self.radar_keep * keep
-        return {"loss": total, **terms, "radar_keep": keep, "radar_kept": kept, "gate": gate}
 
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
