@@ -219,8 +219,9 @@ def run_downstream(
     ``place_options``: keyword arguments of :func:`place_results` (ks, revisit_radius,
     exclude_recent). Returns results.json's content.
     """
+    from msdnet.benchmarks.downstream.report import odometry_markdown, place_markdown
     from msdnet.benchmarks.machine import machine_info
-    from msdnet.benchmarks.quality.report import odometry_markdown, place_markdown, write_json, write_text
+    from msdnet.benchmarks.quality.report import write_json, write_text
 
     sc = run_sequences(ds, sequences, methods, grid, seed, progress)
     if task == "odometry":
