@@ -114,68 +114,12 @@ def test_distillation_trains_only_the_denoiser_toward_the_long_loop(recovered, a
     assert np.isfinite(last["val_distill_occ"]) and last["train_span"] > 0
 
 
-def test_radar_path_fine_tune_moves_only_encoder_rgfd_and_adapter(recovered, astyx_root, tmp_path):
-    """--radar-path-only on a recovered checkpoint (no teacher LiDAR branch): encoder, RGFD and
-    adapter learn Eq. 7 plus the radar-return term; the denoiser and the head stay exactly as they
-    were, and the log carries the new terms and the adapter's gate."""
-    out = tmp_path / "rp"
-    args = _args(astyx_root, recovered, out, "--radar-path-only", "--radar-keep", "2", "--surface", "0.5")
-    r = CliRunner().invoke(train_main, [*args, "--lr", "1e-3", "--epochs", "1"])
-    assert r.exit_code == 0, r.output
-    before = load_checkpoint(recovered)[0].state_dict()
-    after, cfg, state = load_checkpoint(out / "last")
-    after = after.state_dict()
-    moved = {k.split(".")[0] for k in before if not torch.equal(before[k], after[k])}
-    assert moved == {"encoder", "rgfd", "adapter"}
-    assert (
-        cfg == read_checkpoint(recovered)[1] and state.train.radar_path_only and state.train.radar_keep == 2
-    )
-    epoch = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()][-2]
-    assert epoch["event"] == "epoch" and epoch["train_radar_keep"] > 0 and 0 <= epoch["val_radar_kept"] <= 1
-    assert 0 < epoch["val_gate"] <= 1
-    assert 0 < epoch["val_surface"] <= 4.0  # metres, capped
-    total = epoch["train_recon"] + 2 * epoch["train_radar_keep"] + 0.5 * epoch["train_surface"]
-    assert epoch["train_loss"] == pytest.approx(total, rel=1e-5)
-
-
-def test_surface_term_is_the_soft_decoded_mean_distance_to_the_lidar():
-    """The surface term against brute force: each voxel's distance to the nearest LiDAR voxel
-    centre (anisotropic voxels, capped at 4 m), averaged with the soft decoding weights; a cloud
-    decoded on the LiDAR voxels scores 0 and one beside them more."""
-    from msdnet.training.models.assembly import SURFACE_TEMPERATURE, _surface_distance
-
-    rng = np.random.default_rng(0)
-    occ_t = torch.from_numpy((rng.random((2, 3, 5, 6)) < 0.1).astype(np.float32))  # (B, D, H, W)
-    occ_t[1] = 0
-    occ_t[1, 1, 2, 3] = 1
-    logits = torch.from_numpy(rng.normal(size=(2, 3, 5, 6)).astype(np.float32))
-    size = (0.2, 0.25, 0.3)  # x, y, z
-    got = _surface_distance(logits, 0.4, occ_t, size)
-    zyx = np.stack(np.meshgrid(*[np.arange(n) for n in (3, 5, 6)], indexing="ij"), -1).reshape(-1, 3)
-    metres = zyx * np.array([size[2], size[1], size[0]])
-    w = torch.sigmoid((logits - np.log(0.4 / 0.6)) / SURFACE_TEMPERATURE).numpy().reshape(2, -1)
-    want = []
-    for b in range(2):
-        lidar = metres[occ_t[b].numpy().reshape(-1) > 0]
-        d = np.minimum(np.linalg.norm(metres[:, None] - lidar[None], axis=-1).min(1), 4.0)
-        want.append((w[b] * d).sum() / w[b].sum())
-    assert float(got) == pytest.approx(np.mean(want), rel=1e-5)
-    on = torch.where(occ_t > 0, 20.0, -20.0)
-    assert float(_surface_distance(on, 0.4, occ_t, size)) == pytest.approx(0.0, abs=1e-6)
-    beside = torch.roll(on, 1, dims=3)
-    assert float(_surface_distance(beside, 0.4, occ_t, size)) > 0.1
-
-
 def test_distillation_options_are_checked(recovered, exported, astyx_root, tmp_path):
     cases = [
         (["--distill", "8"], "--loop-steps"),  # no K
         (["--distill", "2", "--loop-steps", "2"], "--distill"),  # K must be < N
         (["--distill-head", "1"], "--distill-head"),  # without --distill
         (["--loop-steps", "1"], "read back from an exported model"),  # full training on a recovered one
-        (["--radar-keep", "1"], "--radar-path-only"),  # without --radar-path-only
-        (["--radar-path-only", "--radar-keep", "-1"], "--radar-keep"),
-        (["--radar-path-only", "--head-only"], "--radar-path-only"),
-        (["--surface", "1"], "--surface"),
     ]
     for extra, message in cases:
         r = CliRunner().invoke(train_main, _args(astyx_root, recovered, tmp_path / "x", *extra))

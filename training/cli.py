@@ -292,24 +292,6 @@ def _plan(
     help="With --distill: weight of the full-scale occupancy MSE (frozen head) beside the latent MSE [0].",
 )
 @click.option(
-    "--radar-path-only",
-    is_flag=True,
-    help="Student: train only encoder, RGFD and adapter on Eq. 7 through the frozen loop and head "
-    "(no teacher needed: fine-tunes a --init checkpoint, recovered ones too).",
-)
-@click.option(
-    "--radar-keep",
-    type=float,
-    default=None,
-    help="With --radar-path-only: weight of a BCE on voxels holding both a radar return and LiDAR [0].",
-)
-@click.option(
-    "--surface",
-    type=float,
-    default=None,
-    help="With --radar-path-only: weight of the occupancy-weighted distance to the nearest LiDAR voxel [0].",
-)
-@click.option(
     "--init",
     type=click.Path(path_type=Path),
     default=None,
@@ -358,9 +340,6 @@ def main(
     head_only: bool,
     distill_steps: int | None,
     distill_head: float | None,
-    radar_path_only: bool,
-    radar_keep: float | None,
-    surface: float | None,
     init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -385,23 +364,6 @@ def main(
         options["distill_head"] = distill_head
     elif distill_head is not None:
         raise MsdnetError("--distill-head", "is a --distill weight")
-    if radar_path_only:
-        if kind != "student" or (init is None and not resume) or head_only or distill_steps is not None:
-            raise MsdnetError(
-                "--radar-path-only",
-                "fine-tunes a student --init checkpoint (not with --head-only or --distill)",
-            )
-        options["radar_path_only"] = True
-        if radar_keep is not None and radar_keep < 0:
-            raise MsdnetError("--radar-keep", f"must be >= 0, got {radar_keep}")
-        options["radar_keep"] = radar_keep
-        if surface is not None and surface < 0:
-            raise MsdnetError("--surface", f"must be >= 0, got {surface}")
-        options["surface"] = surface
-    elif radar_keep is not None or surface is not None:
-        raise MsdnetError(
-            "--radar-keep" if radar_keep is not None else "--surface", "is a --radar-path-only weight"
-        )
     if not augment:
         options["augment"] = AugmentConfig.off()
     overrides = {k: v for k, v in options.items() if v is not None}
@@ -458,20 +420,13 @@ def main(
         cfg = replace(
             cfg, train_sample_steps=loop_steps, diffusion=replace(cfg.diffusion, sample_steps=loop_steps)
         )
-    if (
-        init is not None
-        and read_checkpoint(init)[2].recovered_from
-        and not (head_only or distill_steps or radar_path_only)
-    ):
+    if init is not None and read_checkpoint(init)[2].recovered_from and not (head_only or distill_steps):
         raise MsdnetError(
             init,
-            "was read back from an exported model (no teacher LiDAR branch): --distill, --head-only or "
-            "--radar-path-only only",
+            "was read back from an exported model (no teacher LiDAR branch): --distill or --head-only only",
         )
     if tcfg.distill_steps:
         cfg = _distill_config(init if init is not None else out / "last", cfg.train_sample_steps, tcfg)
-    elif tcfg.radar_path_only:  # the model is --init's, as it is
-        cfg = read_checkpoint(init if init is not None else out / "last")[1]
     for name in ablate:
         if kind != "student":
             raise MsdnetError("--ablate", "ablations are of the student (MSDNet) only")
@@ -617,13 +572,6 @@ def _run(
         model.requires_grad_(False)
         model.teacher.head.requires_grad_(True)
         model.head_only = True
-    elif tcfg.radar_path_only:  # encoder, RGFD, adapter on Eq. 7 through the frozen loop and head
-        model.requires_grad_(False)
-        for part in (model.encoder, model.rgfd, model.adapter):
-            part.requires_grad_(True)
-        model.radar_path_only = True
-        model.radar_keep = tcfg.radar_keep
-        model.surface = tcfg.surface
     if tcfg.distill_steps:  # the loop of the --init checkpoint (on resume: read again), frozen
         if spec.init is not None:  # the model holds --init's weights now
             source_step = copy.deepcopy(model.step)

@@ -199,15 +199,6 @@ class TrainConfig:
     # --distill-head W: add W x the MSE of the full-scale occupancy the frozen head decodes from
     # both loops' F_r^D (what the threshold sees), beside the latent MSE
     distill_head: float = 0.0
-    # train a student's radar path alone (encoder, RGFD, adapter) on Eq. 7 through its frozen loop
-    # and head: no teacher latent, so it fine-tunes a checkpoint recovered from graphs
-    radar_path_only: bool = False
-    # with radar_path_only: weight of a BCE pulling up the full-scale occupancy of voxels that
-    # hold both a radar return and LiDAR (0 = Eq. 7 alone)
-    radar_keep: float = 0.0
-    # with radar_path_only: weight of the occupancy-weighted mean distance (m) from a voxel to the
-    # nearest LiDAR voxel (the soft accuracy half of the Chamfer distance; 0 = off)
-    surface: float = 0.0
     augment: AugmentConfig = field(default_factory=AugmentConfig)  # training-frame transforms
 
 

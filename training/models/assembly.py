@@ -22,7 +22,6 @@ always in eval mode), so their checkpoints carry it and ``parameters()`` with
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -125,32 +124,6 @@ class _FrozenTeacherMixin(nn.Module):
         return a.sqrt() * x0 + (1.0 - a).sqrt() * eps, t.float(), eps
 
 
-SURFACE_TEMPERATURE = 0.25  # logit units: how soft the decoding of the surface term is
-
-
-def _surface_distance(
-    logits: Tensor, threshold: float, occ_t: Tensor, voxel_size: tuple[float, float, float]
-) -> Tensor:
-    """Mean distance (m) from a decoded voxel to the nearest LiDAR voxel, decoding made soft: the
-    accuracy half of the Chamfer distance, ``sum_v w_v D(v) / sum_v w_v`` per frame, averaged,
-    with ``w_v = sigmoid((logit_v - logit(threshold)) / SURFACE_TEMPERATURE)``.
-
-    logits: (B, D, H, W) full-scale occupancy logits; occ_t: (B, D, H, W) LiDAR voxels {0, 1};
-    voxel_size: (x, y, z) metres. D is capped at 4 m (frames without LiDAR count 0)."""
-    from scipy.ndimage import distance_transform_edt
-
-    sampling = (voxel_size[2], voxel_size[1], voxel_size[0])  # (z, y, x)
-    empty = (occ_t <= 0).cpu().numpy()  # (B, D, H, W)
-    dist = np.stack(
-        [distance_transform_edt(e, sampling=sampling) if not e.all() else np.zeros(e.shape) for e in empty]
-    )
-    d = torch.from_numpy(np.minimum(dist, 4.0).astype(np.float32)).to(logits)  # (B, D, H, W) metres
-    cut = math.log(threshold / (1.0 - threshold))
-    w = torch.sigmoid((logits - cut) / SURFACE_TEMPERATURE)  # (B, D, H, W) soft "decoded"
-    per_frame = (w * d).flatten(1).sum(1) / w.flatten(1).sum(1).clamp_min(1e-6)  # (B,)
-    return per_frame.mean()
-
-
 class StudentModel(_FrozenTeacherMixin):
     """MSDNet: radar encoder -> RGFD -> noise adapter -> DDIM loop -> shared head."""
 
@@ -174,10 +147,6 @@ class StudentModel(_FrozenTeacherMixin):
         # --distill: (frozen step, its (N, 3) coefficients), kept out of the state_dict
         self._distill_from: tuple[nn.Module, Tensor] | None = None
         self.distill_head = 0.0  # weight of the occupancy term (TrainConfig.distill_head)
-        # --radar-path-only: encoder, RGFD and adapter learn Eq. 7 through the frozen loop and head
-        self.radar_path_only = False
-        self.radar_keep = 0.0  # weight of the radar-return term (TrainConfig.radar_keep)
-        self.surface = 0.0  # weight of the surface-distance term (TrainConfig.surface)
         train_coeffs = step_coefficients(cfg.diffusion, sample_steps=cfg.train_sample_steps)
         self.register_buffer("train_coeffs", torch.tensor(train_coeffs), persistent=False)
 
@@ -225,8 +194,6 @@ class StudentModel(_FrozenTeacherMixin):
         adapter gate delta; a diagnostic, not in the loss)}."""
         if self.head_only:
             return self._head_losses(batch)
-        if self.radar_path_only:
-            return self._radar_path_losses(batch)
         if self._distill_from is not None:
             return self._distill_losses(batch)
         w = self.cfg.losses
@@ -315,31 +282,6 @@ class StudentModel(_FrozenTeacherMixin):
         terms = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, self.cfg.losses)
         return {"loss": terms["recon"], **terms}
 
-    def _radar_path_losses(self, batch: Batch) -> dict[str, Tensor]:
-        """Eq. 7 on F_r^D at the training loop's T_m, reaching only encoder, RGFD and adapter (the
-        denoiser and head are frozen; no teacher latent is needed, so a checkpoint recovered from
-        graphs can train), plus ``radar_keep`` x the BCE pulling up the full-scale occupancy of
-        the voxels that hold both a radar return and LiDAR (returns on a real surface):
-        {"loss", "recon", per-scale occ/off, "radar_keep", "radar_kept" (share of those voxels
-        at occupancy >= the config threshold; a diagnostic), "gate" (mean adapter delta)}."""
-        f_r = self.reconstructed(batch.radar)
-        f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
-        preds = self.head.multi_scale(f_d)
-        terms = reconstruction_loss(preds, batch.targets, self.cfg.losses)
-        logits = preds[-1][0][:, 0]  # (B, D, H, W) full-scale occupancy logits
-        occ_t = batch.targets[-1][0]  # (B, D, H, W) LiDAR voxels {0, 1}
-        c = batch.radar.level_coords[0]  # (V, 4) [b, z, y, x] full-scale radar voxels
-        on_surface = occ_t[c[:, 0], c[:, 1], c[:, 2], c[:, 3]] > 0
-        hits = logits[c[on_surface, 0], c[on_surface, 1], c[on_surface, 2], c[on_surface, 3]]  # (K,)
-        keep = torch.nn.functional.softplus(-hits).mean() if len(hits) else logits.new_zeros(())
-        with torch.no_grad():
-            kept = (torch.sigmoid(hits) >= self.cfg.threshold).float().mean() if len(hits) else keep
-            gate = self.adapter.gate(f_r).mean() if isinstance(self.adapter, NoiseAdapter) else keep
-        surface = _surface_distance(logits, self.cfg.threshold, occ_t, self.cfg.grid.voxel_size)
-        total = terms["recon"] + self.radar_keep * keep + self.surface * surface
-        out = {"loss": total, **terms, "radar_keep": keep, "radar_kept": kept, "gate": gate}
-        return {**out, "surface": surface}
-
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
     ) -> tuple[Tensor, Tensor]:
@@ -399,31 +341,6 @@ class R2LDMModel(_FrozenTeacherMixin):
             other = cond.roll(1, dims=0) if cond.shape[0] > 1 else cond.flip(-1)
             out["diff_shuffled"] = eps_loss(self.unet(x_t, t, other), eps)
         return out
-
-    def _radar_path_losses(self, batch: Batch) -> dict[str, Tensor]:
-        """Eq. 7 on F_r^D at the training loop's T_m, reaching only encoder, RGFD and adapter (the
-        denoiser and head are frozen; no teacher latent is needed, so a checkpoint recovered from
-        graphs can train), plus ``radar_keep`` x the BCE pulling up the full-scale occupancy of
-        the voxels that hold both a radar return and LiDAR (returns on a real surface):
-        {"loss", "recon", per-scale occ/off, "radar_keep", "radar_kept" (share of those voxels
-        at occupancy >= the config threshold; a diagnostic), "gate" (mean adapter delta)}."""
-        f_r = self.reconstructed(batch.radar)
-        f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
-        preds = self.head.multi_scale(f_d)
-        terms = reconstruction_loss(preds, batch.targets, self.cfg.losses)
-        logits = preds[-1][0][:, 0]  # (B, D, H, W) full-scale occupancy logits
-        occ_t = batch.targets[-1][0]  # (B, D, H, W) LiDAR voxels {0, 1}
-        c = batch.radar.level_coords[0]  # (V, 4) [b, z, y, x] full-scale radar voxels
-        on_surface = occ_t[c[:, 0], c[:, 1], c[:, 2], c[:, 3]] > 0
-        hits = logits[c[on_surface, 0], c[on_surface, 1], c[on_surface, 2], c[on_surface, 3]]  # (K,)
-        keep = torch.nn.functional.softplus(-hits).mean() if len(hits) else logits.new_zeros(())
-        with torch.no_grad():
-            kept = (torch.sigmoid(hits) >= self.cfg.threshold).float().mean() if len(hits) else keep
-            gate = self.adapter.gate(f_r).mean() if isinstance(self.adapter, NoiseAdapter) else keep
-        surface = _surface_distance(logits, self.cfg.threshold, occ_t, self.cfg.grid.voxel_size)
-        total = terms["recon"] + self.radar_keep * keep + self.surface * surface
-        out = {"loss": total, **terms, "radar_keep": keep, "radar_kept": kept, "gate": gate}
-        return {**out, "surface": surface}
 
     def predict(
         self, inp: EncoderInput, noise: Tensor | None = None, sample_steps: int | None = None
