@@ -15,24 +15,20 @@ layouts, datasets, bags, Rerun, pictures, bag pairing), ``sim`` (the simulator) 
 which tests/test_import_graph.py checks.
 
 The public names below are imported on first use (PEP 562), so ``import msdnet.runtime`` stays
-cheap for modules that only need the grid or the schedule. Importing it turns onnxruntime's
-telemetry off for the process (``ORT_DISABLE_TELEMETRY=1``, ``ORT_TELEMETRY_DISABLED=1``) unless
-the environment already sets them.
+cheap for modules that only need the grid or the schedule. Importing it turns the telemetry of
+onnxruntime and OpenVINO off for the process, whatever the environment (``offline.py``).
 """
 
 from __future__ import annotations
 
 import importlib
-import os
 from typing import Any
 
-# onnxruntime >= 1.29 sends telemetry on Linux and writes a device id under ~/.cache/Microsoft
-# unless told not to before it is first imported: every msdnet.runtime import comes through here
-# first, so the process runs with it off (a value the user set is kept).
-TELEMETRY_OFF = {"ORT_DISABLE_TELEMETRY": "1", "ORT_TELEMETRY_DISABLED": "1"}
-for _name, _value in TELEMETRY_OFF.items():
-    os.environ.setdefault(_name, _value)
-del _name, _value
+# Every engine's telemetry off before any engine is imported (runtime/offline.py): every
+# msdnet import comes through here first, so the process and its children send nothing.
+from msdnet.runtime.offline import telemetry_off  # noqa: E402
+
+telemetry_off()
 
 _LAZY = {
     "Pipeline": "msdnet.runtime.engine.pipeline",
