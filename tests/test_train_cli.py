@@ -4,6 +4,7 @@ kill + resume, NaN stop, one-line errors; and the torch datasets of training/dat
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -62,6 +63,39 @@ def test_teacher_run_writes_checkpoints_log_and_metrics(teacher_run):
     best = read_checkpoint(teacher_run / "best")[2]
     assert best.best_val_loss == min(e["val_loss"] for e in epochs)
     assert all(p.requires_grad for p in model.parameters())
+
+
+def test_publish_keeps_weights_and_json_only_with_relative_paths(astyx_root, tmp_path, monkeypatch):
+    """--publish copies a finished run's best/ without optimizer state, paths relative to the
+    working directory; the copy starts a student as --teacher like best/ itself."""
+    monkeypatch.chdir(tmp_path)
+    root = Path(os.path.relpath(astyx_root, tmp_path))
+    published = Path("checkpoints") / "m" / "teacher"
+    _train(["teacher", "--dataset", "astyx", "--data", str(root), *TINY, "--epochs", "1",
+            "--out", str(tmp_path / "t"), "--publish", str(published)])  # fmt: skip
+    assert sorted(p.name for p in published.iterdir()) == ["checkpoint.json", "model.safetensors"]
+    assert (tmp_path / "t" / "best" / "training.safetensors").exists()  # the run keeps its own
+    text = (published / "checkpoint.json").read_text()
+    meta = json.loads(text)
+
+    def strings(obj) -> list[str]:
+        if isinstance(obj, dict):
+            return [s for v in obj.values() for s in strings(v)]
+        return [s for v in obj for s in strings(v)] if isinstance(obj, list) else [obj] * isinstance(obj, str)
+
+    assert strings(meta) and not [v for v in strings(meta) if os.path.isabs(v)]  # no machine's path
+    assert meta["published_from"] == "t/best" and meta["training"] == {}
+    assert meta["state"]["dataset"]["root"] == root.as_posix()
+    same = (published / "model.safetensors").read_bytes() == (
+        tmp_path / "t/best/model.safetensors"
+    ).read_bytes()
+    assert same
+    a, _, _ = load_checkpoint(published)
+    b, _, _ = load_checkpoint(tmp_path / "t" / "best")
+    assert all(torch.equal(a.state_dict()[k], v) for k, v in b.state_dict().items())
+    _train(["student", "--dataset", "astyx", "--data", str(root), *TINY, "--epochs", "1",
+            "--teacher", str(published), "--out", str(tmp_path / "s")])  # fmt: skip
+    assert read_checkpoint(tmp_path / "s" / "last")[2].teacher == str(published.resolve())
 
 
 @pytest.mark.parametrize("kind", ["student", "r2ldm"])

@@ -34,7 +34,12 @@ from msdnet.training.data.batch import collate
 from msdnet.training.data.datasets import DATASETS, PairDataset, config_for_dataset, make_splits
 from msdnet.training.models.assembly import MODEL_KINDS, build_model
 from msdnet.training.nn.heads import HEAD_KINDS
-from msdnet.training.recipe.checkpoint import config_diff, load_checkpoint, read_checkpoint
+from msdnet.training.recipe.checkpoint import (
+    config_diff,
+    load_checkpoint,
+    publish_checkpoint,
+    read_checkpoint,
+)
 from msdnet.training.recipe.distributed import DistInfo, init_distributed, shutdown_distributed
 from msdnet.training.recipe.loop import RunSpec, occupancy_counts, train
 
@@ -292,6 +297,13 @@ def _plan(
     help="With --distill: weight of the full-scale occupancy MSE (frozen head) beside the latent MSE [0].",
 )
 @click.option(
+    "--publish",
+    type=click.Path(path_type=Path),
+    default=None,
+    help="When the run has finished its epochs, copy best/ here as weights and checkpoint.json only "
+    "(no optimizer state): small enough to commit, e.g. checkpoints/MODEL/teacher.",
+)
+@click.option(
     "--init",
     type=click.Path(path_type=Path),
     default=None,
@@ -340,6 +352,7 @@ def main(
     head_only: bool,
     distill_steps: int | None,
     distill_head: float | None,
+    publish: Path | None,
     init: Path | None,
 ) -> None:
     """Train KIND (teacher, student or r2ldm) on a dataset; student and r2ldm need --teacher."""
@@ -472,7 +485,7 @@ def main(
         },
     )
     try:
-        _run(spec, cfg, tcfg, train_set, val_set, teacher_model, info)
+        _run(spec, cfg, tcfg, train_set, val_set, teacher_model, info, publish)
     finally:
         shutdown_distributed()
 
@@ -558,8 +571,10 @@ def _run(
     val_set: PairDataset,
     teacher: torch.nn.Module | None,
     info: DistInfo,
+    publish: Path | None = None,
 ) -> None:
-    """Build the model (same seed on every rank), train it, print one summary line."""
+    """Build the model (same seed on every rank), train it, print one summary line; a finished
+    run's best/ is copied to ``publish`` as weights only."""
     torch.manual_seed(tcfg.seed)
     if spec.init is not None:
         model = _init_model(Path(spec.init), spec.kind, cfg, teacher, distill=tcfg.distill_steps > 0)
@@ -589,6 +604,9 @@ def _run(
             f"{spec.kind}: epoch {state.epoch}/{spec.epochs}, step {state.step}, val loss {val:.4g}, "
             f"best {best:.4g} -> {spec.out / 'best'}"
         )
+        if publish is not None and state.epoch >= spec.epochs and (spec.out / "best").exists():
+            folder, digest = publish_checkpoint(spec.out / "best", publish)
+            click.echo(f"published {spec.out / 'best'} -> {folder} (model.safetensors sha256 {digest[:16]})")
 
 
 if __name__ == "__main__":

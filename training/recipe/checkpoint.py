@@ -278,6 +278,51 @@ def save_checkpoint(
     return folder
 
 
+def _relative(path: str | None) -> str | None:
+    """An absolute path as relative to the working directory (POSIX separators); others as given."""
+    if not path or not os.path.isabs(path):
+        return path
+    return Path(os.path.relpath(path)).as_posix()
+
+
+def publish_checkpoint(src: str | Path, dst: str | Path) -> tuple[Path, str]:
+    """Copy checkpoint ``src`` to ``dst`` as weights and ``checkpoint.json`` only: no optimizer,
+    scheduler or EMA state (``training.safetensors``), so that it is small enough to commit.
+
+    ``dst`` is written atomically (temporary folder beside it, then rename) and replaces an earlier
+    copy; its ``checkpoint.json`` records ``published_from`` (``src``), and its paths (teacher,
+    init, dataset root) relative to the working directory, so that no machine's path is committed.
+    Such a folder loads, exports and starts ``--init`` / ``--teacher`` runs like ``src``; it cannot
+    be ``--resume``d.
+    Returns (dst, sha256 of its model.safetensors).
+    """
+    folder, meta = read_meta(src)
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.", suffix=".tmp", dir=dst.parent))
+    try:
+        shutil.copyfile(folder / MODEL_FILE, tmp / MODEL_FILE)
+        meta = {**meta, "training": {}, "files": {MODEL_FILE: meta["files"][MODEL_FILE]}}
+        meta["published_from"] = _relative(str(src))
+        state = meta["state"] = dict(meta["state"])
+        for key in ("teacher", "init", "recovered_from"):  # no path of this machine in a commit
+            state[key] = _relative(state.get(key))
+        if isinstance(state.get("dataset"), dict) and "root" in state["dataset"]:
+            state["dataset"] = {**state["dataset"], "root": _relative(state["dataset"]["root"])}
+        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
+        for name in (MODEL_FILE, META_FILE):
+            _fsync(tmp / name)
+        old = dst.with_name(dst.name + ".old")
+        if dst.exists():
+            shutil.rmtree(old, ignore_errors=True)
+            os.replace(dst, old)
+        os.replace(tmp, dst)
+        shutil.rmtree(old, ignore_errors=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return dst, meta["files"][MODEL_FILE]
+
+
 def resolve_checkpoint(path: str | Path) -> Path:
     """The checkpoint folder for ``path``: the folder, a file in it, or its ``.old`` twin."""
     path = Path(path)
