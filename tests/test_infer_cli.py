@@ -73,17 +73,28 @@ def test_astyx_scans_and_png(tmp_path_factory, astyx_root, tmp_path):
         assert (tmp_path / f"{scan.stem}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_bad_file_does_not_stop_the_batch(vod_model, vod_scans, astyx_root, tmp_path):
+def test_bad_file_does_not_stop_the_batch(vod_model, vod_scans, tmp_path):
     inputs = tmp_path / "in"
     inputs.mkdir()
     (inputs / "broken.npy").write_bytes(b"not a numpy file")
-    astyx = astyx_root / "radar_6455" / "000000.txt"  # no rcs column: the VoD model refuses it
+    (inputs / "short.txt").write_text("x y z rcs v_r_compensated\n1 2 3 4\n")  # a row a value short
     out = tmp_path / "out"
-    r = _infer([inputs / "broken.npy", vod_scans[0], astyx, "--model", vod_model, "--out", out, *STEPS])
+    r = _infer(
+        [
+            inputs / "broken.npy",
+            vod_scans[0],
+            inputs / "short.txt",
+            "--model",
+            vod_model,
+            "--out",
+            out,
+            *STEPS,
+        ]
+    )
     assert r.exit_code == 1, r.output
     assert "files: 1 ok, 2 failed" in r.output
     assert "FAILED " + str(inputs / "broken.npy") in r.output
-    assert "no column 'rcs' (has x y z v_r mag)" in r.output
+    assert "FAILED " + str(inputs / "short.txt") in r.output
     assert (out / f"{vod_scans[0].stem}.npy").is_file()
 
 

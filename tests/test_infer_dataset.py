@@ -16,6 +16,7 @@ from msdnet.runtime.frontends.infer.cli import main
 from msdnet.runtime.frontends.infer.dataset import COMPARISON_FILE, OUT_COLUMNS
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
+from msdnet.runtime.io.pictures import read_counts
 from msdnet.runtime.metrics.cloud import chamfer_distance
 from msdnet.runtime.metrics.crop import crop_to_grid
 
@@ -51,6 +52,12 @@ def test_dataset_mode_writes_clouds_and_compares(vod_model, vod_root, tmp_path):
         assert back.columns == OUT_COLUMNS
         np.testing.assert_array_equal(back.points[:, :3], res.points)
         assert (tmp_path / f"{fid}.png").stat().st_size > 10_000
+        legend = read_counts(tmp_path / f"{fid}.png")  # the picture counts what the JSON counts
+        assert legend == {
+            "LiDAR": row["lidar_points"],
+            "MSDNet output": row["dense_points"],
+            "radar": row["radar_points"],
+        }
         radar = crop_to_grid(frame.radar.xyz, pipe.artifact.grid)
         assert row["radar_points"] == len(radar) > 0
         assert row["lidar_points"] == len(frame.lidar) > 1000

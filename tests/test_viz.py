@@ -13,7 +13,7 @@ from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.frontends.data.show_stats import show, stats
 from msdnet.runtime.io.datasets import VodDataset
 from msdnet.runtime.io.datasets.stats import REALISM_TARGETS, compute_stats, format_stats
-from msdnet.runtime.io.pictures import render_bev
+from msdnet.runtime.io.pictures import Layer, render_bev
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RADAR_RGB = (0xD6 / 255, 0x27 / 255, 0x28 / 255)  # the radar colour of ``show``
@@ -30,16 +30,18 @@ def test_render_bev_png(tmp_path):
     red = np.array([[10.0, 0.0, 1.0], [20.0, 5.0, 0.0]])
     with_red = render_bev(
         tmp_path / "a.png",
-        [(grey, "#777777", "lidar", 1.0), (red, "#ff0000", "radar", 40.0)],
+        [Layer(grey, "#777777", "lidar"), Layer(red, "#ff0000", "radar", "radar")],
         GRID_PRESETS["lite"],
         "test",
     )
-    without = render_bev(tmp_path / "b.png", [(grey, "#777777", "lidar", 1.0)], None, "")
+    without = render_bev(tmp_path / "b.png", [Layer(grey, "#777777", "lidar")], None, "")
     assert with_red.read_bytes()[:8] == PNG_MAGIC
     assert sorted(os.listdir(tmp_path)) == ["a.png", "b.png"]  # no temp files left
-    assert _pixels(with_red) > 20 and _pixels(without) == 0
+    assert _pixels(with_red) > 10 and _pixels(without) == 0
     with pytest.raises(ValueError, match=r"\(N, >=2\)"):
-        render_bev(tmp_path / "c.png", [(np.zeros(3), "k", "bad", 1.0)])
+        render_bev(tmp_path / "c.png", [Layer(np.zeros(3), "k", "bad")])
+    with pytest.raises(ValueError, match="style"):
+        render_bev(tmp_path / "c.png", [Layer(grey, "k", "bad", "blobs")])
     assert not (tmp_path / "c.png").exists()
 
 

@@ -12,7 +12,7 @@ from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES, open_dataset
 from msdnet.runtime.io.datasets.preprocess import lidar_ground, preprocess_frame
 from msdnet.runtime.io.datasets.stats import TARGETS, compute_stats, format_stats
-from msdnet.runtime.io.pictures import render_bev
+from msdnet.runtime.io.pictures import RADAR_COLOUR, Layer, render_bev
 
 DATASET_CHOICE = click.Choice(DATASET_NAMES)
 PRESET_CHOICE = click.Choice(sorted(GRID_PRESETS))
@@ -48,12 +48,13 @@ def show(
         result = lidar_ground(cropped)
         ground_xyz, lidar, method = lidar[result.mask], lidar[~result.mask], result.method
     layers = [
-        (ground_xyz, "#d9c9a3", f"LiDAR ground removed ({method})", 0.5),
-        (lidar, "#555555", "LiDAR", 0.5),
-        (cropped.radar.xyz, "#d62728", "radar", 6.0),
+        Layer(ground_xyz, "#d9c9a3", f"LiDAR ground removed ({method})"),
+        Layer(lidar, "#555555", "LiDAR"),
+        Layer(cropped.radar.xyz, RADAR_COLOUR, "radar", "radar"),
     ]
     title = f"{dataset} {frame_id} ({preset} grid, radar frame)"
-    path = render_bev(out, layers if not keep_ground else layers[1:], grid, title)
+    note = "counts: points inside the grid box (LiDAR: and the field of view)"
+    path = render_bev(out, layers if not keep_ground else layers[1:], grid, title, note)
     click.echo(
         f"wrote {path}: radar {len(cropped.radar)}/{len(frame.radar)}, "
         f"LiDAR {len(lidar)}/{len(frame.lidar)} (ground: {method})"
@@ -82,7 +83,8 @@ def show(
 def stats(
     dataset: str, data: str, max_frames: int | None, preset: str, radar_frames: int, targets: str | None
 ) -> None:
-    """Print the realism statistics (DESIGN.md section 2) of a dataset folder."""
+    """Print a dataset folder's realism statistics: point counts, spread and radar values, each
+    against the band measured on real View-of-Delft or Astyx frames."""
     ds = open_dataset(dataset, data, radar_frames=radar_frames)
     n = len(ds) if max_frames is None else min(max_frames, len(ds))
     picks = np.unique(np.linspace(0, len(ds) - 1, n).round().astype(int))

@@ -1,8 +1,11 @@
 """``msdnet-infer``: run an exported model over radar files, write dense clouds (no torch).
 
-Inputs are files or folders (the point-cloud files directly inside a folder, sorted) of any
-format ``runtime/io/files`` reads. Each output is ``OUT/<input stem>.<format>`` with columns
-``x y z confidence`` (radar frame, metres; confidence = occupancy). A ``.bin`` is read with
+Inputs are files or folders (the scans directly inside a folder, sorted) of any format
+``runtime/io/files`` reads. Before any scan runs (``frontends/infer/scans``), a folder that holds a
+whole dataset is refused, naming the ``--dataset`` that reads it, and scans whose columns the model
+does not read stop the run in one line that names the shipped models that read them. Each output
+is ``OUT/<input stem>.<format>`` with columns ``x y z confidence`` (radar frame, metres;
+confidence = occupancy). A ``.bin`` is read with
 ``--layout`` / ``--columns``, else with the model's training layout (``runtime/io/layouts``). One bad
 file does not stop the others: the summary names it and the exit code is 1. Bad arguments exit 2
 with one line; an option that does not apply to the inputs is refused, or noted where it applies to
@@ -32,9 +35,9 @@ where the manifest has a gate and the dense head is the faster head here (``runt
 auto then runs the dense head, the reference the gated head approximates, and decodes the few points
 the gate drops too. ``--provider auto-bf16`` lets OpenVINO compute in bfloat16 (CPUs with bf16
 units): not within those tolerances; on the Astyx selection slice it changed CD, MHD and F@0.5 by
-under 0.6 % (docs/training.md, twelfth and thirteenth cycles).
+under 0.6 % (docs/latency.md).
 
-``--dataset vod|astyx|sim`` reads one dataset folder instead (``runtime/frontends/infer/dataset``): each
+``--dataset vod|astyx|sim|sim-astyx`` reads one dataset folder instead (``frontends/infer/dataset``): each
 frame's radar is densified and compared with its LiDAR, and the summary says how much denser and
 how much closer to the LiDAR the output is than the radar.
 
@@ -64,7 +67,8 @@ from msdnet.runtime.frontends.infer.files import (
 )
 from msdnet.runtime.frontends.infer.guards import check_out, clamp_workers, prepare_out, usable_cores
 from msdnet.runtime.frontends.infer.option_use import check_option_use
-from msdnet.runtime.frontends.model_args import check_model_options, resolve_model
+from msdnet.runtime.frontends.infer.scans import check_scan_columns
+from msdnet.runtime.frontends.model_args import BUNDLED_MODEL, check_model_options, resolve_model
 from msdnet.runtime.io.files import DENSE_COLUMNS, WRITE_FORMATS
 from msdnet.runtime.io.layouts import LAYOUTS, resolve_bin_columns
 
@@ -115,14 +119,13 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 @click.option("--threads", type=click.IntRange(min=1), help="Intra-op threads per worker.")
 @click.option(
     "--dataset",
-    type=click.Choice(["vod", "astyx", "sim"]),
-    help="INPUTS is one dataset folder: densify its radar and compare with its LiDAR.",
+    type=click.Choice(["vod", "astyx", "sim", "sim-astyx"]),
+    help="INPUTS is one dataset folder (or the simulator's output): densify its radar and compare "
+    "with its LiDAR.",
 )
 @click.option("--split", type=click.Choice(["train", "val"]), help="With --dataset: one split [all].")
 @click.option("--frames", "max_frames", type=click.IntRange(min=1), help="With --dataset: first N frames.")
-@click.option(
-    "--topic", help="INPUTS is one ROS 1/2 bag: densify this PointCloud2 topic (runtime/io/rosbag)."
-)
+@click.option("--topic", help="INPUTS is one ROS 1/2 bag: densify this PointCloud2 topic into a ROS 2 bag.")
 @click.option("--field", "fields", multiple=True, metavar="COLUMN=FIELD", help="With --topic: map a field.")
 @click.option(
     "--bag-storage", type=click.Choice(["sqlite3", "mcap"]), help="With --topic [input's; ROS 1: mcap]."
@@ -133,7 +136,7 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
     is_flag=False,
     flag_value="local",
     metavar="[ADDRESS]",
-    help="Run the files on Ray actors (runtime/frontends/infer/ray_batch): local, auto or ray://HOST:PORT.",
+    help="Run the files on Ray actors: local, auto or ray://HOST:PORT (the optional [ray] extra).",
 )
 @click.option(
     "--ray-timeout",
@@ -144,7 +147,7 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 )
 @click.option("--rerun", type=click.Path(path_type=Path), help="Also write a Rerun recording FILE.rrd.")
 @click.option(
-    "--layout", type=click.Choice(list(LAYOUTS)), help=".bin columns (runtime/io/layouts) [the model's data]."
+    "--layout", type=click.Choice(list(LAYOUTS)), help="Columns of .bin inputs by layout [the model's data]."
 )
 @click.option("--columns", "bin_columns", metavar="X,Y,Z", help=".bin columns by name (not with --layout).")
 @one_line_errors
@@ -221,6 +224,13 @@ def main(
     if dataset is not None:
         if skip_existing:
             raise MsdnetError("--skip-existing", "only applies to file mode, not --dataset")
+        if len(inputs) != 1 or not inputs[0].is_dir():
+            raise MsdnetError(" ".join(map(str, inputs)), "--dataset takes exactly one dataset folder")
+        from msdnet.runtime.frontends.infer.dataset import check_radar_columns
+        from msdnet.runtime.io.atomic import check_writable
+
+        check_writable(out, "into")  # the output first, before the dataset is read
+        check_radar_columns(artifact, dataset, inputs[0], split)
         _announce_auto(artifact, provider, threads, verbose)
         _dataset_mode(artifact, provider, threads, dataset, inputs, out, split, max_frames, options)
         if rerun is not None:
@@ -231,6 +241,7 @@ def main(
     if split is not None or max_frames is not None:
         raise MsdnetError("--split/--frames", "only apply with --dataset")
     files = collect_inputs(inputs)
+    check_scan_columns(files, columns, model_dir, artifact.inputs.columns, BUNDLED_MODEL.parent)
     targets = output_paths(files, out, fmt)
     prepare_out(out)  # writable, and a killed run's temporary files removed
     start = time.perf_counter()
@@ -293,8 +304,6 @@ def _dataset_mode(
     from msdnet.runtime.engine.pipeline import Pipeline
     from msdnet.runtime.frontends.infer.dataset import run_dataset, summary_lines
 
-    if len(inputs) != 1 or not inputs[0].is_dir():
-        raise MsdnetError(" ".join(map(str, inputs)), "--dataset takes exactly one dataset folder")
     prepare_out(out)  # writable, and a killed run's temporary files removed
     pipe = Pipeline(artifact, provider=provider, threads=threads)
     rows, failed = run_dataset(pipe, dataset, inputs[0], out, split, max_frames, options)

@@ -149,6 +149,20 @@ def run_dataset(
     return rows, failed
 
 
+def check_radar_columns(artifact: Any, dataset: str, root: Path, split: str | None) -> None:
+    """The first frame's radar columns against the model's (``scans.check_columns``), before any
+    work: a dataset the model cannot read stops in one line naming the shipped models that read it."""
+    from msdnet.runtime.frontends.infer.scans import check_columns
+    from msdnet.runtime.frontends.model_args import BUNDLED_MODEL
+
+    ds = open_dataset(dataset, root, split=split)
+    try:
+        columns = ds.load(ds.frame_ids[0]).radar.columns
+    except (MsdnetError, IndexError):
+        return  # no frame, or a broken first frame: the run reports it
+    check_columns(str(root), columns, artifact.root, artifact.inputs.columns, BUNDLED_MODEL.parent)
+
+
 def _run_frame(
     pipe: Pipeline, ds: Any, dataset: str, fid: str, out: Path, options: DensifyOptions
 ) -> FrameComparison:
@@ -160,14 +174,23 @@ def _run_frame(
     seconds = time.perf_counter() - start
     dst = out / f"{fid}.{options.fmt}"
     write_dense(dst, res.points, res.confidence, options.fmt)
-    if options.png:
-        from msdnet.runtime.io.pictures import render_bev
-
-        layers = [
-            (frame.lidar.xyz, "#9ecae1", "LiDAR", 0.6),
-            (res.points, "#333333", "dense", 0.5),
-            (frame.radar.xyz, "#d62728", "radar", 6.0),
-        ]
-        render_bev(dst.with_suffix(".png"), layers, grid, f"{dataset} {fid}")
     row = compare_frame(fid, frame.radar.xyz, res.points, frame.lidar.xyz, grid, seconds)
+    if options.png:
+        name = "R2LDM" if pipe.artifact.kind == "r2ldm" else "MSDNet"
+        _picture(dst.with_suffix(".png"), frame, res.points, grid, f"{dataset} {fid}", name)
     return replace(row, **{k: int(res.stats[k]) for k in DROP_REASONS})
+
+
+def _picture(target: Path, frame: Any, dense: np.ndarray, grid: GridConfig, title: str, name: str) -> None:
+    """The ``--png`` picture of one frame: LiDAR, output and radar inside the grid box and field of
+    view, the crop ``comparison.json`` counts in, so the legend's counts are that frame's row."""
+    from msdnet.runtime.io.pictures import RADAR_COLOUR, Layer, render_bev
+    from msdnet.runtime.metrics.crop import crop_to_grid
+
+    layers = [
+        Layer(crop_to_grid(frame.lidar.xyz, grid), "#222222", "LiDAR", "dots"),
+        Layer(crop_to_grid(dense, grid), "#1f5fbf", f"{name} output", "voxels"),
+        Layer(crop_to_grid(frame.radar.xyz, grid), RADAR_COLOUR, "radar", "radar"),
+    ]
+    note = "counts: points inside the grid box and field of view, as in comparison.json"
+    render_bev(target, layers, grid, title, note)

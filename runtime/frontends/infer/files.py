@@ -1,7 +1,7 @@
 """``msdnet-infer INPUTS --out OUT``: the file mode, in this process, in ``--workers`` processes or on
 Ray actors (``frontends/infer/ray_batch``); every way runs ``worker._run_one`` per file.
 
-- ``collect_inputs``: files as given, folders expanded to the readable files directly inside them;
+- ``collect_inputs``: files as given, folders expanded to the scans directly inside them;
 - ``output_paths``: ``OUT/<stem>.<format>`` per input, refusing name clashes and inputs overwritten;
 - ``pending_jobs``: the (input, output) pairs left to do (``--skip-existing`` resumes a batch);
 - ``run_files``: the jobs run one way or another -> one summary row per file, in input order;
@@ -23,6 +23,7 @@ from tqdm import tqdm
 from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.frontends.densify import DensifyOptions
+from msdnet.runtime.frontends.infer.scans import is_scan, refuse_dataset_folder
 from msdnet.runtime.frontends.infer.worker import WORKER, _init_worker, _run_one
 from msdnet.runtime.io.files import READ_FORMATS
 
@@ -30,11 +31,16 @@ EXIT_SOME_FAILED = 1
 
 
 def collect_inputs(inputs: tuple[Path, ...]) -> list[Path]:
-    """Files as given, folders expanded to the readable files directly inside them (sorted)."""
+    """Files as given, folders expanded to the scans directly inside them (sorted; ``scans.is_scan``
+    leaves a licence or a frame list out); a folder holding a whole dataset is refused, naming the
+    ``--dataset`` that reads it."""
     files: list[Path] = []
     for item in inputs:
         if item.is_dir():
-            found = sorted(p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS)
+            refuse_dataset_folder(item)
+            found = sorted(
+                p for p in item.iterdir() if p.is_file() and p.suffix.lower() in READ_FORMATS and is_scan(p)
+            )
             if not found:
                 raise MsdnetError(item, f"folder holds no point-cloud file ({' '.join(READ_FORMATS)})")
             files += found

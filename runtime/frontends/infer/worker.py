@@ -47,10 +47,7 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
         row.update({k: res.stats[k] for k in DROP_REASONS})
         write_dense(dst, res.points, res.confidence, options.fmt)
         if options.png:
-            from msdnet.runtime.io.pictures import render_bev
-
-            layers = [(res.points, "#555555", "MSDNet dense", 0.5), (cloud.xyz, "#d62728", "radar", 6.0)]
-            render_bev(Path(dst).with_suffix(".png"), layers, pipe.artifact.grid, Path(src).name)
+            _picture(Path(dst).with_suffix(".png"), cloud.xyz, res.points, pipe.artifact, Path(src).name)
         notes = list(res.notes)
         if len(cloud) == 0 and cloud.dropped_nonfinite:  # not an "empty scan": every row was bad
             notes = [f"all {cloud.dropped_nonfinite} rows are NaN/Inf: empty output"]
@@ -61,3 +58,16 @@ def _run_one(src: str, dst: str) -> dict[str, Any]:
     except Exception as err:  # one bad file must not stop the batch
         row["error"] = f"{src}: {type(err).__name__}: {' '.join(str(err).split())[:200]}"
     return row
+
+
+def _picture(target: Path, radar: Any, dense: Any, artifact: Any, title: str) -> None:
+    """The ``--png`` picture of one file: the output over the radar points inside the grid box."""
+    from msdnet.runtime.io.pictures import RADAR_COLOUR, Layer, render_bev
+
+    name = "R2LDM" if artifact.kind == "r2ldm" else "MSDNet"
+    layers = [
+        Layer(dense, "#1f5fbf", f"{name} output", "voxels"),
+        Layer(radar, RADAR_COLOUR, "radar in the grid", "radar", of=len(radar)),
+    ]
+    note = "counts: the points drawn, all inside the grid box (radar: of those read)"
+    render_bev(target, layers, artifact.grid, title, note)
