@@ -104,7 +104,8 @@ def _methods(
 @one_line_errors
 @checks_outputs(out="into")  # before any work
 def quality_command(**opts: Any) -> None:
-    """Quality of raw radar, R2LDM, MSDNet (torch / onnxruntime) and ablations (Tables I, II)."""
+    """Quality against the LiDAR of raw radar, R2LDM, MSDNet (torch / onnxruntime) and ablations:
+    scene and object metrics per frame and their means."""
     from msdnet.benchmarks.quality.suite import run_quality
     from msdnet.runtime.io.datasets import open_dataset
 

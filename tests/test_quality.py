@@ -194,7 +194,7 @@ def test_picture_strip_and_strict_json(tmp_path):
     from matplotlib.image import imread
 
     h, w = imread(png).shape[:2]
-    assert w == 1200 and h == 440
+    assert w == 1200 and h == 460
     path = write_json(tmp_path / "r.json", {"x": math.nan, "y": np.float32(1.5), "z": (1, np.int64(2))})
     doc = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"non-strict JSON {c}"))
     assert doc == {"x": None, "y": 1.5, "z": [1, 2]}

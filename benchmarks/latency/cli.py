@@ -40,7 +40,9 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--repeats", type=click.IntRange(min=1), help="Timed MSDNet frames [30; quick 3].")
 @click.option("--warmup", type=click.IntRange(min=0), help="Untimed frames first [3; quick 1].")
 @click.option("--r2ldm-repeats", type=click.IntRange(min=1), help="Timed R2LDM frames [5; quick 1].")
-@click.option("--steps", "steps_text", help="Steps sweep, e.g. 1,3,10,25,50,100 (+ Table III).")
+@click.option(
+    "--steps", "steps_text", help="Steps sweep, e.g. 1,3,10,25,50,100 (time, and quality with --data)."
+)
 @click.option("--points", "points_text", help="Input-size sweep, e.g. 1000,10000,100000.")
 @click.option(
     "--target-points",
@@ -86,7 +88,9 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
     "pipeline, both fresh at --provider, interleaved on the same stream of scans; ratios "
     "frame_over_before and encoder_over_before.",
 )
-@click.option("--data", type=click.Path(path_type=Path), help="Dataset root (Table III quality).")
+@click.option(
+    "--data", type=click.Path(path_type=Path), help="Dataset root: quality against T_m on its frames."
+)
 @click.option("--dataset", type=click.Choice(DATASET_NAMES), help="Layout of --data.")
 @click.option("--frames", type=click.IntRange(min=1), help="Frames scored per T_m [10; quick 1].")
 @click.option("--seed", type=int, default=0, show_default=True, help="Weights, inputs and noise.")
@@ -123,7 +127,8 @@ def latency_command(
     seed: int,
     quick: bool,
 ) -> None:
-    """Per-stage latency, Tables III and IV, ratios and scaling; writes results.json/.md + plots."""
+    """Time per stage and per frame, against peer engines, T_m and input size; writes
+    results.json, results.md and plots."""
     from msdnet.benchmarks.latency.suite import LatencyConfig, quick_config, run_latency
     from msdnet.runtime.engine.session import resolve_providers
 

@@ -168,7 +168,7 @@ def _tables(res: dict[str, Any]) -> list[str]:
         ["goal", "measured", "target", "met"],
         [[g["goal"], _fmt(g["measured"], 3, "g"), g["target"], met[g["met"]]] for g in res["goals"]],
     )
-    out += ["", "## Table IV: runtime and parameters (paper: VoD, RTX 4090; here: this CPU)", ""]
+    out += ["", "## Time and parameters per model (paper's Table IV: VoD, RTX 4090; here: this CPU)", ""]
     names = ("r2dm", "r2ldm", "msdnet")
     out += _table(
         ["", "R2DM", "R2LDM", "MSDNet"],
@@ -179,7 +179,7 @@ def _tables(res: dict[str, Any]) -> list[str]:
             ["measured parameters, M", "-", p["r2ldm"] / 1e6, p["msdnet"] / 1e6],
         ],
     )
-    out += ["", "## Table III: T_m (paper: CD and runtime on an RTX 4090)", ""]
+    out += ["", "## Quality and time against T_m (paper's Table III: CD and runtime on an RTX 4090)", ""]
     sweep = {row["steps"]: row for row in res["steps_sweep"]}
     qual = {row["steps"]: row for row in res["table3"]["quality"]}
     head = ["T_m", "paper s", "paper CD", "measured total ms", "DDIM loop ms"]

@@ -54,7 +54,8 @@ def steps_markdown(doc: dict[str, Any]) -> str:
     last = rows[-1]["steps"]
     load = f"{m['loadavg_start'][0]:.1f} at the start, {m['loadavg_end'][0]:.1f} at the end"
     out = [
-        f"# Table III: T_m sweep, `{ev['model']}` on {ev['dataset']} / {ev['split']}, {ev['frames']} frames",
+        f"# Quality and time against the DDIM steps T_m: `{ev['model']}` on {ev['dataset']} / "
+        f"{ev['split']}, {ev['frames']} frames",
         "",
         f"Command: `{doc['command']}`",
         "",
@@ -213,7 +214,7 @@ def run_steps(
 @one_line_errors
 @checks_outputs(out="into")  # before any work
 def steps_command(steps_text: str, **opts: Any) -> None:
-    """MSDNet Table III: CD, MHD, F-scores, JSD and ms per frame against T_m on a dataset split."""
+    """CD, MHD, F-scores, JSD and ms per frame against the DDIM steps T_m on a dataset split."""
     from msdnet.runtime.engine.session import resolve_providers
 
     resolve_providers(opts["provider"])

@@ -20,7 +20,7 @@ from matplotlib.figure import Figure
 from msdnet.benchmarks.quality.columns import FSCORE_KEYS
 from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.io.atomic import atomic_output
-from msdnet.runtime.io.pictures import draw_grid
+from msdnet.runtime.io.pictures import COUNTS_KEY, draw_grid
 
 # MSDNet paper, Table I (VoD) as printed: CD (unit not stated), MHD (printed x1e-2, here in m),
 # F-score (threshold not stated), JSD, MMD (printed x1e-4, here as is).
@@ -126,7 +126,7 @@ def quality_markdown(doc: dict[str, Any]) -> str:
         f"{ev['grid']['point_range']} m, ±{ev['grid']['fov_deg']:g}° field of view); radar frame. "
         f"Seed {ev['seed']}. Machine: {doc['machine']['cpu']} ({doc['machine']['logical_cores']} cores).",
         "",
-        "## Table I shape: every method, mean over frames",
+        "## Every method: scene metrics, mean over frames",
         "",
     ]
     heads = ["Method", "CD (m)", "CD² (m²)", "MHD (m)"] + [f"F@{k.split('@')[1]} m" for k in FSCORE_KEYS]
@@ -137,7 +137,7 @@ def quality_markdown(doc: dict[str, Any]) -> str:
     ablations = [m for m in doc["methods"] if m["role"] == "ablation"]
     if ablations and doc.get("margins"):
         full = doc["margins"]["msdnet"]
-        out += ["", "## Table II shape: ablations", ""]
+        out += ["", "## Ablations: scene metrics, mean over frames", ""]
         rows = []
         for name in [m["name"] for m in ablations] + [full]:
             s = doc["summary"][name]
@@ -164,12 +164,16 @@ def quality_markdown(doc: dict[str, Any]) -> str:
         [n, fmt(v["cd"], 2), fmt(v["mhd"], 4), fmt(v["fscore"], 2), fmt(v["jsd"], 2), fmt(v["mmd"], 2, 1e4)]
         for n, v in PAPER_TABLE1_VOD.items()
     ]
-    out += ["Table I:", ""] + md_table(["Method", "CD", "MHD (m)", "F-score", "JSD", "MMD (×10⁻⁴)"], rows)
+    out += ["Every method (the paper's Table I):", ""] + md_table(
+        ["Method", "CD", "MHD (m)", "F-score", "JSD", "MMD (×10⁻⁴)"], rows
+    )
     rows = [
         [n, fmt(v["cd"], 2), fmt(v["mhd"], 4), fmt(v["jsd"], 2), fmt(v["mmd"], 2, 1e4)]
         for n, v in PAPER_TABLE2.items()
     ]
-    out += ["", "Table II:", ""] + md_table(["Method", "CD", "MHD (m)", "JSD", "MMD (×10⁻⁴)"], rows)
+    out += ["", "Ablations (the paper's Table II):", ""] + md_table(
+        ["Method", "CD", "MHD (m)", "JSD", "MMD (×10⁻⁴)"], rows
+    )
     out += ["", "Paper margins MSDNet vs R2LDM: CD −15.0 %, MHD −65.8 %, F-score +44.4 %.", "", PAPER_NOTE]
     if doc.get("objects"):
         out += ["", *objects_markdown(doc)]
@@ -236,11 +240,14 @@ def picture_strip(
     """One PNG with a BEV panel per (label, points (N, >=2) [x, y, ...] radar frame, colour).
 
     As ``runtime.io.pictures.render_bev``: x forward drawn upward, y left drawn to the left, the grid box
-    and the field of view outlined; ``boxes``: (4, 2) [x, y] footprints drawn on every panel.
+    and the field of view outlined; ``boxes``: (4, 2) [x, y] footprints drawn on every panel. Each
+    panel's title counts its points, the points scored for that frame (``per_frame`` ``points`` of
+    results.json), and the PNG keeps those counts (``pictures.read_counts``).
     Written atomically; returns the path.
     """
-    fig = Figure(figsize=(4 * len(panels), 4.4), dpi=dpi)
+    fig = Figure(figsize=(4 * len(panels), 4.6), dpi=dpi)
     FigureCanvasAgg(fig)
+    counts: dict[str, int] = {}
     for i, (label, pts, colour) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
         p = np.asarray(pts)
@@ -251,7 +258,8 @@ def picture_strip(
             ax.plot(ring[:, 1], ring[:, 0], color="tab:green", lw=0.8)
         ax.set_xlabel("y (m, left)", fontsize=8)
         ax.set_aspect("equal", adjustable="box")
-        ax.set_title(f"{label} ({len(p)})", fontsize=9)
+        ax.set_title(f"{label} ({len(p):,})", fontsize=9)
+        counts[label] = len(p)
         if i == 0:
             ax.set_ylabel("x (m, forward)", fontsize=8)
         ax.tick_params(labelsize=7)
@@ -259,5 +267,5 @@ def picture_strip(
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     with atomic_output(path) as tmp:
-        fig.savefig(tmp, format="png")
+        fig.savefig(tmp, format="png", metadata={COUNTS_KEY: json.dumps(counts)})
     return Path(path)

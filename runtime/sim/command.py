@@ -129,9 +129,12 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, overwrite: bool,
     start = time.perf_counter()
     doc = simulate_dataset(out, sequences, frames, seed, overwrite, rig=rig)
     elapsed = time.perf_counter() - start
-    n = sequences * frames
     loops = sum(s["has_loop"] for s in doc["sequences"])
-    click.echo(
-        f"simulated {sequences} x {frames} = {n} frames into {out} in {elapsed:.1f} s "
-        f"({n / elapsed:.2f} frames/s); {loops} sequence(s) with loop closures"
-    )
+    drives = f"{sequences} drive{'s' if sequences > 1 else ''} of {frames} frames"
+    if sequences == 1:
+        back = "it comes back to a place it passed" if loops else "it never comes back to a place it passed"
+    elif loops == 0:
+        back = "none of them comes back to a place it passed"
+    else:
+        back = f"{loops} of them come{'s' if loops == 1 else ''} back to a place they passed"
+    click.echo(f"simulated {drives} into {out} in {elapsed:.1f} s; {back}")
