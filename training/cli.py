@@ -205,6 +205,13 @@ def _plan(
 )
 @click.option("--zeta", type=float, default=None, help="Offset weight of Eq. 7 [10, the paper].")
 @click.option(
+    "--full-scale-rate",
+    type=float,
+    default=None,
+    help="Share of the full scale far from the LiDAR points scored per step, reweighted so the loss "
+    "is unbiased; the rest is not computed [1 = every voxel].",
+)
+@click.option(
     "--holdout",
     type=float,
     default=0.15,
@@ -334,6 +341,7 @@ def main(
     threads: int | None,
     occ_pos_weight: float | None,
     zeta: float | None,
+    full_scale_rate: float | None,
     holdout: float,
     augment: bool,
     lambdas: str | None,
@@ -399,6 +407,11 @@ def main(
         if zeta < 0:
             raise MsdnetError("--zeta", f"must be >= 0, got {zeta}")
         cfg = dataclasses.replace(cfg, losses=dataclasses.replace(cfg.losses, zeta=zeta))
+    if full_scale_rate is not None:
+        if not 0 < full_scale_rate <= 1:
+            raise MsdnetError("--full-scale-rate", f"must be in (0, 1], got {full_scale_rate}")
+        losses = dataclasses.replace(cfg.losses, full_scale_rate=full_scale_rate)
+        cfg = dataclasses.replace(cfg, losses=losses)
     if lambdas is not None:
         try:
             weights = tuple(float(v) for v in lambdas.split(","))

@@ -24,6 +24,11 @@ class LossWeights:
     lambdas: tuple[float, float, float, float] = (1.0, 0.01, 5.0, 10.0)
     # weight of occupied voxels in Eq. 5 (1 = the paper); sparse LiDAR needs more, see docs/training.md
     occ_pos_weight: float = 1.0
+    # share of the half-scale voxels far from every LiDAR point (under an empty quarter-scale voxel)
+    # whose full-scale children enter Eq. 5-6 in a training step, weighted 1 / share so that the
+    # loss is unbiased; the rest of the full scale is not computed (training/models/full_rows.py).
+    # 1 = every voxel, the exact loss; validation always scores every voxel
+    full_scale_rate: float = 1.0
     # let Eq. 14 and the reconstruction loss reach the denoiser's weights through the DDIM loop
     # (False: the denoiser learns Eq. 10 only; the loop's gradients still reach RGFD and the
     # adapter). Measured: with it on, Eq. 14 is 120-640x Eq. 10 on the denoiser and the

@@ -36,7 +36,7 @@ from msdnet.training.models.latent import LatentHead, norm_tensors
 from msdnet.training.models.losses import (
     eps_loss,
     feature_distillation,
-    reconstruction_loss,
+    head_loss,
     student_total,
 )
 from msdnet.training.nn.adapter import ForwardNoising, NoiseAdapter
@@ -73,8 +73,8 @@ class TeacherModel(nn.Module):
 
     def losses(self, batch: Batch) -> dict[str, Tensor]:
         """Eq. 7 on the LiDAR targets: {"loss", "recon", "occ_s4", "off_s4", ..., "off_s1"}."""
-        terms = reconstruction_loss(
-            self.head.multi_scale(self.features(batch.lidar)), batch.targets, self.cfg.losses
+        terms = head_loss(
+            self.head, self.features(batch.lidar), batch.targets, self.cfg.losses, self.training
         )
         return {"loss": terms["recon"], **terms}
 
@@ -217,7 +217,7 @@ class StudentModel(_FrozenTeacherMixin):
             out["align"] = eps_loss(self.adapter.mix(f_r.detach(), eps_m, delta), target)
         else:
             f_d = self.denoised(f_r, eps_m, self.train_coeffs)
-        recon = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, w)
+        recon = head_loss(self.head, f_d, batch.targets, w, self.training)
         out["distill_rec"] = feature_distillation(f_r, f_l, nonempty, w.alpha, w.gamma)  # Eq. 8
         if self.cfg.use_dgfd:
             out["distill_diff"] = feature_distillation(f_d, f_l, nonempty, w.alpha, w.gamma)  # Eq. 14
@@ -279,7 +279,7 @@ class StudentModel(_FrozenTeacherMixin):
         with torch.no_grad():
             f_r = self.reconstructed(batch.radar)
             f_d = self.denoised(f_r, torch.randn_like(f_r), self.train_coeffs)
-        terms = reconstruction_loss(self.head.multi_scale(f_d), batch.targets, self.cfg.losses)
+        terms = head_loss(self.head, f_d, batch.targets, self.cfg.losses, self.training)
         return {"loss": terms["recon"], **terms}
 
     def predict(

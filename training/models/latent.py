@@ -43,9 +43,9 @@ class LatentHead(nn.Module):
     def _f(self, z: Tensor) -> Tensor:
         return z * self.scale + self.shift  # (B, C, H8, W8) back to the teacher's scale
 
-    def multi_scale(self, z: Tensor) -> list[tuple[Tensor, Tensor]]:
+    def multi_scale(self, z: Tensor, rows: Tensor | None = None) -> list[tuple[Tensor, Tensor]]:
         """As ``ReconHead.multi_scale`` on de-normalised z."""
-        return self._head.multi_scale(self._f(z))
+        return self._head.multi_scale(self._f(z), rows)
 
     def packed(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """As ``ReconHead.packed`` on de-normalised z (``recon_head.onnx``)."""

@@ -12,8 +12,10 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+from torch.nn import Module
 
 from msdnet.training.config import LossWeights
+from msdnet.training.models.full_rows import FullRows, rows_loss, select_rows
 
 SCALE_NAMES = ("s4", "s2", "s1")  # scales 1/4, 1/2, 1 in head / target order
 
@@ -46,18 +48,24 @@ def reconstruction_loss(
     preds: Sequence[tuple[Tensor, Tensor]],
     targets: Sequence[tuple[Tensor, Tensor]],
     weights: LossWeights,
+    full_rows: FullRows | None = None,
 ) -> dict[str, Tensor]:
     """MSDNet Eq. 7: ``sum_s rho L_occ^(s) + sum_s zeta L_off^(s)`` over scales 1/4, 1/2, 1.
 
     preds: per scale (occupancy logits (B, 1, D, H, W), offsets (B, 3, D, H, W));
     targets: per scale (occ (B, D, H, W), off (B, 3, D, H, W)).
+    full_rows: the full scale's preds are in the rows form (logits (N, 8), offsets (N, 8, 3)) on
+    these voxels, scored unbiasedly (training/models/full_rows.py).
     Returns {"recon": total, "occ_s4", "off_s4", "occ_s2", "off_s2", "occ_s1", "off_s1"}.
     """
     out: dict[str, Tensor] = {}
     total = preds[0][0].new_zeros(())
     for name, (logits, off), (occ_t, off_t) in zip(SCALE_NAMES, preds, targets, strict=True):
-        l_occ = occupancy_bce(logits.squeeze(1), occ_t, weights.occ_pos_weight)
-        l_off = offset_l1(off, off_t, occ_t)
+        if name == SCALE_NAMES[-1] and full_rows is not None:
+            l_occ, l_off = rows_loss(logits, off, full_rows, weights.occ_pos_weight)
+        else:
+            l_occ = occupancy_bce(logits.squeeze(1), occ_t, weights.occ_pos_weight)
+            l_off = offset_l1(off, off_t, occ_t)
         out[f"occ_{name}"] = l_occ
         out[f"off_{name}"] = l_off
         total = total + weights.rho * l_occ + weights.zeta * l_off
@@ -94,3 +102,14 @@ def student_total(
     """MSDNet Eq. 15: ``l1 L_recon + l2 L_distill^rec + l3 L_distill^diff + l4 L_diff``."""
     l1, l2, l3, l4 = weights.lambdas
     return l1 * recon + l2 * distill_rec + l3 * distill_diff + l4 * diff
+
+
+def head_loss(head: Module, features: Tensor, targets: Sequence[tuple[Tensor, Tensor]], weights: LossWeights,
+              training: bool) -> dict[str, Tensor]:  # fmt: skip
+    """Eq. 7 of ``head`` on ``features``: while training with ``weights.full_scale_rate`` < 1 the
+    full scale on the rows :func:`~msdnet.training.models.full_rows.select_rows` draws, else dense
+    (validation scores are exact)."""
+    if training and weights.full_scale_rate < 1.0:
+        rows = select_rows(targets, weights.full_scale_rate)
+        return reconstruction_loss(head.multi_scale(features, rows.index), targets, weights, rows)
+    return reconstruction_loss(head.multi_scale(features), targets, weights)

@@ -103,6 +103,9 @@ def rows(conv: nn.Conv3d, x: Tensor) -> Tensor:
     return x @ conv.weight.reshape(conv.out_channels, -1).t() + conv.bias
 
 
+rows_of = rows  # for methods whose argument is named ``rows``
+
+
 class HeadOutputs(nn.Module):
     """What every reconstruction head shares after its trunk: the occupancy / offset branches at
     1/4 and 1/2 (Eq. 3-4), the per-child full-scale layers ``up1`` / ``full`` and the crops, in
@@ -138,6 +141,18 @@ class HeadOutputs(nn.Module):
         """x2 (B, c2, D2, H2, W2) -> full scale (logits (B, 1, D, H, W), offsets (B, 3, D, H, W))."""
         y = self._crop(depth_to_space3d(self.full(torch.relu(self.up1(x2))), 4), 2)  # (B, 4, D, H, W)
         return y[:, :1], torch.tanh(y[:, 1:]) * self.half_size_2
+
+    def _full_or_rows(self, x2: Tensor, rows: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The full scale of ``multi_scale``: dense (:meth:`_full`) when ``rows`` is None, else
+        only the children of the half-scale voxels ``rows`` (N,) int64, linear in the flattened
+        (B, D2, H2, W2): (logits (N, 8), offsets (N, 8, 3) metres [dx, dy, dz]), axis 1 the
+        child ``(dz * 2 + dy) * 2 + dx`` (training/models/full_rows.py)."""
+        if rows is None:
+            return self._full(x2)
+        feats = x2.permute(0, 2, 3, 4, 1).reshape(-1, x2.shape[1]).index_select(0, rows)  # (N, c2)
+        h = torch.relu(rows_of(self.up1, feats))  # (N, 8 * c1)
+        y = (h @ self._full_block().t() + self.full.bias).reshape(-1, 8, 4)  # (N, child, 4)
+        return y[:, :, 0], torch.tanh(y[:, :, 1:]) * self.half_size_2.reshape(1, 1, 3)
 
     def _packed_children(self, x2: Tensor) -> tuple[Tensor, Tensor]:
         """x2 (B, c2, D2, H2, W2) -> (occupancy (B, 8, D2, H2, W2), offsets (B, 8, 3, D2, H2, W2)),
@@ -196,11 +211,12 @@ class ReconHead(HeadOutputs):
         x2 = self.post2(self._crop(self.up2(x4), 1))  # (B, c2, D2, H2, W2)
         return x4, x2
 
-    def multi_scale(self, features: Tensor) -> list[tuple[Tensor, Tensor]]:
+    def multi_scale(self, features: Tensor, rows: Tensor | None = None) -> list[tuple[Tensor, Tensor]]:
         """F^D (B, C, H8, W8) -> per scale 1/4, 1/2, 1: (occupancy logits (B, 1, D_s, H_s, W_s),
-        offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]). Logits, for a stable BCE (Eq. 5)."""
+        offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]). Logits, for a stable BCE (Eq. 5).
+        ``rows``: the full scale only under these half-scale voxels (:meth:`_full_or_rows`)."""
         x4, x2 = self._trunk(features)
-        return [self._branches(x4, 0), self._branches(x2, 1), self._full(x2)]
+        return [self._branches(x4, 0), self._branches(x2, 1), self._full_or_rows(x2, rows)]
 
     def packed(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """Inference at full scale without the depth-to-space (``recon_head.onnx``): F^D (B, C, H8, W8)

@@ -122,12 +122,13 @@ class SparseReconHead(HeadOutputs):
         """(B, c4, D4, H4, W4) -> (B, c2, D2, H2, W2), dense."""
         return self.post2(self._crop(self.up2(x4), 1))
 
-    def multi_scale(self, features: Tensor) -> list[tuple[Tensor, Tensor]]:
+    def multi_scale(self, features: Tensor, rows: Tensor | None = None) -> list[tuple[Tensor, Tensor]]:
         """F^D (B, C, H8, W8) -> per scale 1/4, 1/2, 1: (occupancy logits (B, 1, D_s, H_s, W_s),
-        offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]), every voxel (training)."""
+        offsets (B, 3, D_s, H_s, W_s) metres [dx, dy, dz]), every voxel (training); ``rows`` as in
+        ``ReconHead.multi_scale``."""
         x4 = self._quarter(features)
         x2 = self._half(x4)
-        return [self._branches(x4, 0), self._branches(x2, 1), self._full(x2)]
+        return [self._branches(x4, 0), self._branches(x2, 1), self._full_or_rows(x2, rows)]
 
     def packed(self, features: Tensor) -> tuple[Tensor, Tensor]:
         """As ``ReconHead.packed``: (occupancy (B, 8, D2, H2, W2), offsets (B, 8, 3, D2, H2, W2))."""
