@@ -130,7 +130,7 @@ def simulate(out: Path, sequences: int, frames: int, seed: int, overwrite: bool,
     doc = simulate_dataset(out, sequences, frames, seed, overwrite, rig=rig)
     elapsed = time.perf_counter() - start
     loops = sum(s["has_loop"] for s in doc["sequences"])
-    drives = f"{sequences} drive{'s' if sequences > 1 else ''} of {frames} frames"
+    drives = f"{sequences} drive{'s' if sequences > 1 else ''} of {frames} frame{'s' if frames > 1 else ''}"
     if sequences == 1:
         back = "it comes back to a place it passed" if loops else "it never comes back to a place it passed"
     elif loops == 0:
