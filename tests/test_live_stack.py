@@ -383,7 +383,7 @@ def test_stack_node_params_file_keep_radar_frame_diagnostics_debug_foxglove(env,
         f"    target_frame: base_link\n    extrinsic: '{EXTRINSIC}'\n"
         "    debug_msgs_type: tier4_debug_msgs\n"
         "    max_allowed_processing_time_ms: 500.0\n    max_acceptable_consecutive_delay_ms: 1200.0\n"
-        "    testing_delay: '4:8:800'\n    foxglove: true\n    foxglove_port: 0\n"
+        "    testing_delay: '4:8:800'\n    foxglove: true\n    foxglove_port: 0\n    diagnostics_period_s: 0.1\n"
         f"    stats_json: {stats_path}\n",
         encoding="utf-8",
     )

@@ -9,24 +9,22 @@ topics and ``/diagnostics`` (``runtime/frontends/live/observe``). Every flag is 
 ``runtime/frontends/live/params`` and can come from a ROS 2 parameters file; ``--print-params``
 prints the resolved parameters in that form and exits. No ROS install: the cyclonedds binding
 (``pip install 'msdnet[live]'``) speaks RTPS, so a ROS 2 system on the same domain id sees the
-node's topics. SIGINT / SIGTERM stop it within a second and print the counters, the receive ->
-publish latency (p50 / p90 / p99 / max) and the input points dropped. The command ends the
-process itself (``os._exit`` once all is written): call :func:`serve` to embed.
+node's topics. SIGINT / SIGTERM stop it within a second in any state (loading the model and
+measuring engines included) and print the counters, the receive -> publish latency (p50 / p90 /
+p99 / max) and the input points dropped, exit 0. The command ends the process itself
+(``lifecycle``: ``os._exit`` once all is written): call ``node.serve`` to embed.
 """
 
 from __future__ import annotations
 
-import os
-import signal
 import sys
-import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import click
 
-from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.errors import EXIT_BAD_INPUT, MsdnetError, one_line_errors
 from msdnet.runtime.frontends.live.params import PARAMS
 
 
@@ -63,41 +61,64 @@ def _delay(text: str) -> tuple[int, int, float] | None:
     return out
 
 
-def config_from(values: dict[str, Any], columns: tuple[str, ...]) -> Any:
-    """The resolved parameters -> NodeConfig, each checked (one line naming the flag)."""
+def _named(origin: dict[str, str], name: str, check: Callable[[], Any]) -> Any:
+    """``check()``, its MsdnetError re-named after where parameter ``name`` came from (the flag,
+    or the parameters file and key)."""
+    try:
+        return check()
+    except MsdnetError as err:
+        raise MsdnetError(origin.get(name, name), err.cause) from None
+
+
+def config_from(values: dict[str, Any], artifact: Any, origin: dict[str, str] | None = None) -> Any:
+    """The resolved parameters -> NodeConfig, each checked against the model ``artifact``; one
+    line naming the flag, or the parameters file and key (``origin``)."""
     from msdnet.runtime.frontends.densify import DensifyOptions
+    from msdnet.runtime.frontends.live.checks import (
+        check_extrinsic,
+        check_identity,
+        check_radar_scan_fields,
+        check_topics,
+        resolve_topic,
+    )
     from msdnet.runtime.frontends.live.dds import check_domain
-    from msdnet.runtime.frontends.live.idl import dds_topic
     from msdnet.runtime.frontends.live.node import NodeConfig
-    from msdnet.runtime.io.pairing.transforms import parse_extrinsic
     from msdnet.runtime.io.rosbag import parse_field_map
 
-    dds_topic(values["input_topic"])
-    if values["output_topic"]:
-        try:
-            dds_topic(values["output_topic"])
-        except MsdnetError as err:
-            raise MsdnetError("--output-topic", err.cause) from None
-    check_domain(values["domain_id"])
-    parse_field_map(values["fields"], columns)
-    if values["input_type"] == "radar_scan" and values["field_preset"]:
+    origin = origin or {}
+    columns = tuple(artifact.inputs.columns)
+    name, namespace = check_identity(values["node_name"], values["namespace"], origin)
+    fqn = "/" + "/".join(t for t in f"{namespace}/{name}".split("/") if t)
+    topic = _named(origin, "input_topic", lambda: resolve_topic(values["input_topic"], namespace, fqn))
+    output = values["output_topic"]
+    if output:
+        output = _named(origin, "output_topic", lambda: resolve_topic(output, namespace, fqn))
+    _named(origin, "domain_id", lambda: check_domain(values["domain_id"]))
+    _named(origin, "fields", lambda: parse_field_map(values["fields"], columns))
+    if values["input_type"] == "radar_scan":
+        if values["field_preset"]:
+            raise MsdnetError(
+                origin.get("field_preset", "--field-preset"),
+                "applies to PointCloud2 input only (a RadarScan's fields are fixed)",
+            )
+        _named(origin, "fields", lambda: check_radar_scan_fields(values["fields"], columns))
+    if bool(values["target_frame"]) != bool(values["extrinsic"]):
         raise MsdnetError(
-            "--field-preset", "applies to PointCloud2 input only (a RadarScan's fields are fixed)"
+            origin.get("target_frame", "--target-frame"),
+            "needs --extrinsic x,y,z,roll,pitch,yaw, and the other way round",
         )
     extrinsic = None
-    if bool(values["target_frame"]) != bool(values["extrinsic"]):
-        raise MsdnetError("--target-frame", "needs --extrinsic x,y,z,roll,pitch,yaw, and the other way round")
     if values["extrinsic"]:
-        parse_extrinsic(values["extrinsic"])
-        extrinsic = tuple(float(v) for v in values["extrinsic"].split(","))
+        extrinsic = _named(origin, "extrinsic", lambda: check_extrinsic(values["extrinsic"], artifact.grid))
+    delay = _named(origin, "testing_delay", lambda: _delay(values["testing_delay"]))
     options = DensifyOptions(
         steps=values["steps"] or None,
         threshold=values["threshold"] or None,
         seed=values["seed"],
         keep_radar=values["keep_radar"],
     )
-    return NodeConfig(
-        topic=values["input_topic"],
+    cfg = NodeConfig(
+        topic=topic,
         domain_id=values["domain_id"],
         fields=tuple(values["fields"]),
         options=options,
@@ -105,7 +126,7 @@ def config_from(values: dict[str, Any], columns: tuple[str, ...]) -> Any:
         stats_json=Path(values["stats_json"]) if values["stats_json"] else None,
         input_type=values["input_type"],
         input_reliable=values["input_reliability"] == "reliable",
-        output_topic=values["output_topic"],
+        output_topic=output,
         field_preset=values["field_preset"],
         target_frame=values["target_frame"],
         extrinsic=extrinsic,
@@ -118,8 +139,13 @@ def config_from(values: dict[str, Any], columns: tuple[str, ...]) -> Any:
         foxglove=values["foxglove"],
         foxglove_host=values["foxglove_host"],
         foxglove_port=values["foxglove_port"],
-        testing_delay=_delay(values["testing_delay"]),
+        testing_delay=delay,
+        node_name=name,
+        namespace=namespace,
+        diagnostics_period_s=values["diagnostics_period_s"],
     )
+    check_topics(cfg, origin)
+    return cfg
 
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
@@ -139,47 +165,20 @@ def main(params_file: Path | None, print_params: bool, **flags: Any) -> None:
 
     given = {k for k, v in flags.items() if v is not None and v != ()}
     flags = {k: list(v) if isinstance(v, tuple) else v for k, v in flags.items()}
-    values = params.resolve(params.read_file(params_file) if params_file else {}, flags, given)
+    from_file = params.file_values(params_file, flags, given) if params_file else {}
+    values, origin = params.resolve(from_file, flags, given, params_file)
     if print_params:
         click.echo(params.dump(values), nl=False)
         return
-    run(values)
+    run(values, origin)
 
 
-def run(values: dict[str, Any]) -> None:
-    """Check everything, then serve until SIGINT / SIGTERM and exit the process."""
-    from msdnet.runtime.engine.pipeline import Pipeline
-    from msdnet.runtime.frontends.live.dds import cyclonedds
-    from msdnet.runtime.frontends.live.messages import preset_note
-    from msdnet.runtime.frontends.live.node import engines_used, serve, write_stats
-    from msdnet.runtime.frontends.model_args import check_model_options, resolve_model
-    from msdnet.runtime.io.atomic import check_writable
+def run(values: dict[str, Any], origin: dict[str, str] | None = None) -> None:
+    """Check everything, then serve until SIGINT / SIGTERM and end the process (``lifecycle``):
+    a signal at any point, the model loading included, ends it with exit 0 and the stats."""
+    from msdnet.runtime.frontends.live.lifecycle import Lifecycle
 
-    cyclonedds()  # the missing-extra line before anything else
-    if values["stats_json"]:
-        check_writable(values["stats_json"])  # before any work: the stats are not lost at exit
-    if values["foxglove"]:
-        from msdnet.runtime.frontends.live.foxglove_view import _foxglove
-
-        _foxglove()
-    model = Path(values["model"]) if values["model"] else None
-    trusted = Path(values["trusted_key"]) if values["trusted_key"] else None
-    artifact = check_model_options(
-        resolve_model(model),
-        trusted,
-        values["provider"],
-        values["threshold"] or None,
-        values["steps"] or None,
-    )
-    cfg = config_from(values, tuple(artifact.inputs.columns))
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    pipe = Pipeline(artifact, provider=values["provider"], threads=values["threads"] or None)
+    state: dict[str, Any] = {"pipe": None, "stats_json": None, "stats": None}
 
     def echo(text: str) -> None:
         click.echo(text)
@@ -188,19 +187,76 @@ def run(values: dict[str, Any]) -> None:
     def warn(text: str) -> None:
         click.echo(text, err=True)
 
+    def report() -> None:  # the last words, whoever ends the process
+        from msdnet.runtime.frontends.live.stats import NodeStats, engines_used, write_stats
+
+        stats = state["stats"] or NodeStats()
+        if state["pipe"] is None:
+            warn("msdnet-node: stopped while starting (before serving)")
+        echo(stats.line())
+        if state["stats_json"] is not None:
+            write_stats(state["stats_json"], stats, engines_used(state["pipe"], values["provider"]))
+
+    life = Lifecycle(report)
+    life.install()  # first: every thread started after it (numpy's BLAS pool too) inherits the block
+    try:
+        if values["stats_json"]:
+            from msdnet.runtime.io.atomic import check_writable
+
+            check_writable(values["stats_json"])  # before any work: the stats are not lost at exit
+            state["stats_json"] = Path(values["stats_json"])
+        from msdnet.runtime.frontends.live.stats import NodeStats
+
+        stats = state["stats"] = NodeStats()
+        _start(values, origin or {}, state, life, stats, echo, warn)
+    except MsdnetError as err:
+        life.end(EXIT_BAD_INPUT, err)
+    life.end(0)
+
+
+def _start(
+    values: dict[str, Any],
+    origin: dict[str, str],
+    state: dict[str, Any],
+    life: Any,
+    stats: Any,
+    echo: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> None:
+    """Load and check everything, then serve until ``life.stop``."""
+    from msdnet.runtime.engine.pipeline import Pipeline
+    from msdnet.runtime.frontends.live.dds import cyclonedds
+    from msdnet.runtime.frontends.live.messages import preset_note
+    from msdnet.runtime.frontends.live.node import serve
+    from msdnet.runtime.frontends.model_args import check_model_options, resolve_model
+
+    cyclonedds()  # the missing-extra line before anything else
+    if values["foxglove"]:
+        from msdnet.runtime.frontends.live.foxglove_view import _foxglove
+
+        _foxglove()
+    model = Path(values["model"]) if values["model"] else None
+    trusted = Path(values["trusted_key"]) if values["trusted_key"] else None
+    flag_names = {"--threshold": "threshold", "--steps": "steps", "--model": "model"}
+    try:
+        artifact = check_model_options(
+            resolve_model(model),
+            trusted,
+            values["provider"],
+            values["threshold"] or None,
+            values["steps"] or None,
+        )
+    except MsdnetError as err:
+        name = flag_names.get(str(err.path), "provider" if "provider" in str(err.path) else None)
+        raise MsdnetError(origin.get(name, err.path) if name else err.path, err.cause) from None
+    cfg = config_from(values, artifact, origin)
+    pipe = Pipeline(artifact, provider=values["provider"], threads=values["threads"] or None)
+    state["pipe"] = pipe
     preset = "radar_scan" if cfg.input_type == "radar_scan" else cfg.field_preset
     note = preset_note(preset, pipe.columns) if not cfg.fields else None
     if note:
         warn(f"msdnet-node: {note}")
-    stats = serve(pipe, cfg, stop, echo, warn)
-    echo(stats.line())
-    if cfg.stats_json is not None:
-        write_stats(cfg.stats_json, stats, engines_used(pipe, values["provider"]))
-    sys.stdout.flush()
-    sys.stderr.flush()
-    # Everything is written and the DDS participant deleted; skip the interpreter's teardown of
-    # numba and onnxruntime (~1 s here, freeing only memory), so SIGTERM -> exit stays well under 1 s.
-    os._exit(0)
+    serve(pipe, cfg, life.stop, echo, warn, stats, life.serving)
 
 
 if __name__ == "__main__":

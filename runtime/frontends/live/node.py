@@ -11,24 +11,24 @@ or run is counted, named in one line on stderr, and the node goes on.
 
 from __future__ import annotations
 
-import json
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.frontends.densify import DensifyOptions, densify
-from msdnet.runtime.io.atomic import atomic_output
+from msdnet.runtime.frontends.live.stats import (  # noqa: F401 - the node's stats, as before
+    LatestSlot,
+    NodeStats,
+    engines_used,
+    write_stats,
+)
 
-LATENCY_WINDOW = 100_000  # latencies kept for the percentiles (bounded memory)
-SCAN_WINDOW = 1000  # scans whose own input point counts the stats JSON keeps
 POLL_S = 0.05  # how often both threads look at the stop flag (SIGTERM -> exit well within 1 s)
 DENSE_SUFFIX = "/dense"  # output topic = input topic + this
 
@@ -59,118 +59,18 @@ class NodeConfig:
     foxglove_host: str = "127.0.0.1"
     foxglove_port: int = 8765
     testing_delay: tuple[int, int, float] | None = None  # (start, stop, ms): slow scans start..stop-1
+    node_name: str = "msdnet_node"  # ROS 2 node name: ~/debug topics, diagnostic status name
+    namespace: str = "/"  # ROS 2 namespace of the node
+    diagnostics_period_s: float = 1.0  # /diagnostics period (diagnostic_updater's), the latest state
 
     @property
     def dense_topic(self) -> str:
         return self.output_topic or self.topic.rstrip("/") + DENSE_SUFFIX
 
-
-class LatestSlot:
-    """One waiting item; a newer :meth:`put` replaces it. Thread-safe."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self._item: Any = None
-
-    def put(self, item: Any) -> bool:
-        """Store ``item``; -> True when it replaced one nobody had taken (a drop)."""
-        with self._cond:
-            replaced = self._item is not None
-            self._item = item
-            self._cond.notify()
-        return replaced
-
-    def take(self, timeout: float) -> Any:
-        """The waiting item (removing it), or None after ``timeout`` seconds."""
-        with self._cond:
-            if self._item is None:
-                self._cond.wait(timeout)
-            item, self._item = self._item, None
-        return item
-
-
-def _percentiles(values: deque) -> dict[str, float | None]:
-    a = np.asarray(values, dtype=np.float64)
-    if not a.size:
-        return {"p50": None, "p90": None, "p99": None, "max": None, "count": 0}
-    pct = {f"p{q}": float(np.percentile(a, q)) for q in (50, 90, 99)}
-    return {**pct, "max": float(a.max()), "count": int(a.size)}
-
-
-@dataclass
-class NodeStats:
-    """Counters and the latency windows (seconds; the debug values in ms); ``lock`` guards them."""
-
-    received: int = 0  # valid samples taken from DDS
-    published: int = 0  # dense clouds written
-    dropped: int = 0  # scans replaced while waiting (latest-message-wins)
-    bad: int = 0  # messages that could not be read or run
-    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
-    service: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # take -> publish
-    cyclic_ms: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
-    pipeline_latency_ms: deque = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
-    points_in: int = 0  # input points of the published scans
-    points_dropped: dict[str, int] = field(default_factory=lambda: dict.fromkeys(DROP_REASONS, 0))
-    scans: deque = field(default_factory=lambda: deque(maxlen=SCAN_WINDOW))  # per scan: see add_scan
-    diagnostics: dict[str, int] = field(default_factory=lambda: {"OK": 0, "WARN": 0, "ERROR": 0})
-    lock: threading.Lock = field(default_factory=threading.Lock)
-
-    def add_scan(self, stamp: str, res_stats: dict[str, int]) -> None:
-        """Count one published scan's input points and the ones the engine dropped, by reason."""
-        drops = {k: int(res_stats.get(k, 0)) for k in DROP_REASONS}
-        # points_in: the rows the pipeline was given; a reader's NaN/Inf rows came before it
-        n_in = int(res_stats.get("points_in", 0)) + int(res_stats.get("dropped_nonfinite", 0))
-        with self.lock:
-            self.points_in += n_in
-            for key, n in drops.items():
-                self.points_dropped[key] += n
-            self.scans.append({"stamp": stamp, "points_in": n_in, **drops})
-
-    def summary(self) -> dict[str, Any]:
-        """Counters, latency percentiles in milliseconds (None before the first message), the
-        input points dropped (totals by reason, and per scan for the last ``SCAN_WINDOW``)."""
-        with self.lock:
-            lat = np.asarray(self.latencies, dtype=np.float64) * 1e3
-            srv = np.asarray(self.service, dtype=np.float64) * 1e3
-            body: dict[str, Any] = {
-                "received": self.received,
-                "published": self.published,
-                "dropped": self.dropped,
-                "bad": self.bad,
-            }
-            points = {"in": self.points_in, **self.points_dropped}
-            points["dropped"] = sum(self.points_dropped.values())
-            scans = list(self.scans)
-            cyclic, pipeline = deque(self.cyclic_ms), deque(self.pipeline_latency_ms)
-            diagnostics = dict(self.diagnostics)
-        pct = {f"p{q}": float(np.percentile(lat, q)) if lat.size else None for q in (50, 90, 99)}
-        body["latency_ms"] = {**pct, "max": float(lat.max()) if lat.size else None, "count": int(lat.size)}
-        body["service_ms"] = {  # one scan's own time (read, densify, publish), without the wait
-            "p50": float(np.percentile(srv, 50)) if srv.size else None,
-            "max": float(srv.max()) if srv.size else None,
-        }
-        body["processing_time_ms"] = _percentiles(deque(srv))  # = ~/debug/processing_time_ms
-        body["cyclic_time_ms"] = _percentiles(cyclic)
-        body["pipeline_latency_ms"] = _percentiles(pipeline)
-        body["input_points"] = points
-        body["input_points_per_scan"] = scans
-        body["diagnostics"] = diagnostics
-        return body
-
-    def line(self) -> str:
-        """``received 300, published 290, dropped 10, bad 0; latency ms p50 .. p90 .. p99 ..
-        max ..; input points 61234, dropped 812 (NaN/Inf 0, outside the grid 812, ...)``"""
-        s = self.summary()
-        lat = s["latency_ms"]
-        text = ", ".join(f"{k} {s[k]}" for k in ("received", "published", "dropped", "bad"))
-        if lat["count"]:
-            text += "; receive->publish ms " + " ".join(
-                f"{k} {lat[k]:.1f}" for k in ("p50", "p90", "p99", "max")
-            )
-        pts = s["input_points"]
-        why = ", ".join(f"{DROP_REASONS[k]} {pts[k]}" for k in DROP_REASONS)
-        text += f"; input points {pts['in']}, dropped {pts['dropped']} ({why})"
-        return f"msdnet-node: {text}"
+    @property
+    def fqn(self) -> str:
+        """The node's fully qualified name, ``/namespace/name``."""
+        return "/" + "/".join(t for t in f"{self.namespace}/{self.node_name}".split("/") if t)
 
 
 def _receive(
@@ -181,13 +81,19 @@ def _receive(
     stop: threading.Event,
     bad: Callable[[str], None],
     type_name: str,
+    watch: Any = None,
 ) -> None:
-    """Receive thread: take samples one by one into ``slot`` until ``stop``."""
+    """Receive thread: take samples one by one into ``slot`` until ``stop``; between them, let
+    ``watch`` (a ``discovery.WriterWatch``) name the writers the reader cannot match."""
     from cyclonedds.util import duration
 
     index = 0
     while not stop.is_set():
         waitset.wait(duration(seconds=POLL_S))
+        if watch is not None:
+            watch.poll()
+            with stats.lock:
+                stats.unmatched_writers = watch.count
         while not stop.is_set():
             try:
                 samples = reader.take(N=1)
@@ -260,10 +166,15 @@ def serve(
     stop: threading.Event,
     echo: Callable[[str], None],
     warn: Callable[[str], None],
+    stats: NodeStats | None = None,
+    serving: Callable[[], bool] | None = None,
 ) -> NodeStats:
-    """Serve ``cfg.topic`` with ``pipe`` until ``stop`` is set; -> the final stats. Prints a ready
-    line once subscribed, a stats line every ``cfg.stats_every`` messages and one at the end."""
+    """Serve ``cfg.topic`` with ``pipe`` until ``stop`` is set; -> the final stats (``stats``, or
+    new ones). Prints a ready line once subscribed, a stats line every ``cfg.stats_every``
+    messages. ``serving()`` is asked before the first scan (``lifecycle.Lifecycle.serving``):
+    False (a signal came while starting) returns at once."""
     from msdnet.runtime.frontends.live.dds import Endpoints
+    from msdnet.runtime.frontends.live.discovery import WriterWatch
     from msdnet.runtime.frontends.live.idl import PointCloud2, RadarScan, dds_topic
     from msdnet.runtime.frontends.live.messages import output_message, stamp_of
     from msdnet.runtime.frontends.live.observe import LEVEL_NAMES, Observer
@@ -273,6 +184,7 @@ def serve(
     scan = _Scan(pipe, cfg)
     struct = RadarScan if cfg.input_type == "radar_scan" else PointCloud2
     type_name = "RadarScan" if struct is RadarScan else "PointCloud2"
+    stats = NodeStats() if stats is None else stats
     pipe.warmup()
     view = None
     if cfg.foxglove:
@@ -282,21 +194,29 @@ def serve(
     dds = Endpoints(cfg.domain_id)
     reader = dds.reader(in_topic, reliable=cfg.input_reliable, struct=struct)
     writer = dds.writer(dds_topic(out_name), reliable=cfg.output_reliable)
-    observer = Observer(dds, cfg, hardware_id=f"msdnet_node {cfg.topic}")
+    observer = Observer(dds, cfg)
     waitset, _cond = dds.waitset(reader)
-    stats, slot = NodeStats(), LatestSlot()
+    slot = LatestSlot()
 
     def bad(text: str) -> None:
         warn(f"msdnet-node: bad message on {cfg.topic}: {text}")
 
+    def unmatched(text: str) -> None:
+        warn(f"msdnet-node: {text}")
+
+    dds_type = struct.__idl__.idl_transformed_typename
+    watch = WriterWatch(dds.participant, reader, in_topic, cfg.topic, dds_type, cfg.input_reliable, unmatched)
+    if serving is not None and not serving():
+        return stats
     thread = threading.Thread(
-        target=_receive, args=(reader, waitset, slot, stats, stop, bad, type_name), daemon=True
+        target=_receive, args=(reader, waitset, slot, stats, stop, bad, type_name, watch), daemon=True
     )
     thread.start()
+    observer.start()
     fox = f"; Foxglove ws://{cfg.foxglove_host}:{view.port}" if view is not None else ""
     echo(
         f"msdnet-node: serving {cfg.topic} (DDS {in_topic}, {type_name}, domain {cfg.domain_id}) -> "
-        f"{out_name}; columns {' '.join(pipe.columns)}{fox}"
+        f"{out_name} as node {cfg.fqn}; columns {' '.join(pipe.columns)}{fox}"
     )
     handled = 0
     noted_nonfinite = False
@@ -304,10 +224,10 @@ def serve(
     while not stop.is_set():
         item = slot.take(POLL_S)
         if item is None:
-            observer.idle(time.perf_counter())
             continue
         sample, received_at, index = item
         taken_at = time.perf_counter()
+        observer.health.begin(time.monotonic())
         cyclic_ms = None if previous_start is None else (taken_at - previous_start) * 1e3
         previous_start = taken_at
         sec, nsec = stamp_of(sample)
@@ -330,7 +250,7 @@ def serve(
                 if cyclic_ms is not None:
                     stats.cyclic_ms.append(cyclic_ms)
             stats.add_scan(f"{sec}.{nsec:09d}", res.stats)
-            level = observer.scan(processing_ms, cyclic_ms, latency_ms, now)
+            level = observer.scan(processing_ms, cyclic_ms, latency_ms, time.monotonic())
             with stats.lock:
                 stats.diagnostics[LEVEL_NAMES[level]] += 1
             if cloud.dropped_nonfinite and not noted_nonfinite:
@@ -350,28 +270,16 @@ def serve(
             with stats.lock:
                 stats.bad += 1
             bad(f"{label}: {type(err).__name__}: {' '.join(str(err).split())[:200]}")
+        finally:
+            observer.health.begin(None)  # a scan that failed is not running any more
         handled += 1
         if cfg.stats_every and handled % cfg.stats_every == 0:
             echo(stats.line())
-    thread.join(timeout=2 * POLL_S)
+    # the other threads first: nothing may use an endpoint while the participant is deleted
+    thread.join(timeout=1.0)
+    ended = observer.close() and not thread.is_alive()
     if view is not None:
         view.close()
-    dds.close()
+    if ended:
+        dds.close()
     return stats
-
-
-def write_stats(path: Path, stats: NodeStats, engines: dict[str, Any] | None = None) -> None:
-    """The final stats as JSON at ``path`` (atomically); ``engines``: what ``engines_used`` says."""
-    body = stats.summary() | ({} if engines is None else {"engines": engines})
-    with atomic_output(path) as tmp:
-        Path(tmp).write_text(json.dumps(body, indent=1) + "\n", encoding="utf-8")
-
-
-def engines_used(pipe: Any, provider: str) -> dict[str, Any]:
-    """The provider asked for, the engine each graph runs on and the head graph, as JSON:
-    ``{"provider": str, "graphs": {file: engine}, "head": "dense" | "coarse-to-fine" | None}``."""
-    auto = getattr(pipe, "auto", None)
-    if auto is None:  # a provider by name: every graph on it
-        return {"provider": provider, "graphs": {}, "head": None}
-    graphs = {f: pick.engine for f, pick in auto.picks.items()}
-    return {"provider": provider, "graphs": graphs, "head": None if auto.head is None else auto.head.head}
