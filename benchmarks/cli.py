@@ -15,6 +15,7 @@ from msdnet.benchmarks.live import live_command
 from msdnet.benchmarks.params import params_command
 from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
+from msdnet.benchmarks.training_speed import training_speed_command
 from msdnet.benchmarks.voxelize_bench import voxelize_command
 
 
@@ -36,3 +37,4 @@ main.add_command(conditioning_command)
 main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)
 main.add_command(live_command)  # msdnet-node end to end on loopback (benchmarks/live.py)
 main.add_command(fuzz_command)  # mutated inputs through every reader (benchmarks/fuzz.py)
+main.add_command(training_speed_command)  # step time before / after (benchmarks/training_speed.py)

@@ -11,3 +11,12 @@ Layers, each importing only those before it (``tests/test_import_graph.py``):
   gated head;
 - ``cli``: ``msdnet-train`` (also ``torchrun -m msdnet.training.cli``).
 """
+
+import os as _os
+
+# OpenMP threads that wait passively: with the default policy each of torch's threads spins at every
+# barrier, and on a machine where other processes take a core (a test run, a second training) a
+# spinning thread waits for a descheduled one; a lite step then takes 3-6x longer (measured in
+# docs/results/training-speed). Read by OpenMP when torch loads it, so set before any torch import
+# of this package; a value the user set is kept.
+_os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
