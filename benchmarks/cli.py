@@ -1,5 +1,5 @@
 """``msdnet-bench``: voxelize, quality, odometry, place, latency, encoders, params, steps, stages,
-conditioning, soak, live, fuzz."""
+conditioning, soak, live, node-exit, fuzz."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from msdnet.benchmarks.latency.cli import latency_command
 from msdnet.benchmarks.latency.encoder_forms import encoders_command
 from msdnet.benchmarks.latency.steps import steps_command
 from msdnet.benchmarks.live import live_command
+from msdnet.benchmarks.node_exit import node_exit_command
 from msdnet.benchmarks.params import params_command
 from msdnet.benchmarks.soak import soak_command
 from msdnet.benchmarks.stages import stages_command
@@ -36,5 +37,6 @@ main.add_command(stages_command)
 main.add_command(conditioning_command)
 main.add_command(soak_command)  # resident memory of one msdnet-infer process (benchmarks/soak.py)
 main.add_command(live_command)  # msdnet-node end to end on loopback (benchmarks/live.py)
+main.add_command(node_exit_command)  # msdnet-node stopped by a signal on first runs (benchmarks/node_exit.py)
 main.add_command(fuzz_command)  # mutated inputs through every reader (benchmarks/fuzz.py)
 main.add_command(training_speed_command)  # step time before / after (benchmarks/training_speed.py)

@@ -178,7 +178,8 @@ def run(values: dict[str, Any], origin: dict[str, str] | None = None) -> None:
     a signal at any point, the model loading included, ends it with exit 0 and the stats."""
     from msdnet.runtime.frontends.live.lifecycle import Lifecycle
 
-    state: dict[str, Any] = {"pipe": None, "stats_json": None, "stats": None}
+    # what the last words need, filled in as the node starts; "phase": what it is doing
+    state: dict[str, Any] = {"pipe": None, "stats_json": None, "stats": None, "phase": "starting"}
 
     def echo(text: str) -> None:
         click.echo(text)
@@ -191,11 +192,13 @@ def run(values: dict[str, Any], origin: dict[str, str] | None = None) -> None:
         from msdnet.runtime.frontends.live.stats import NodeStats, engines_used, write_stats
 
         stats = state["stats"] or NodeStats()
-        if state["pipe"] is None:
-            warn("msdnet-node: stopped while starting (before serving)")
+        phase = "serving" if life.serving_now() else state["phase"]
+        if phase != "serving":
+            warn(f"msdnet-node: stopped while {phase}, before serving")
         echo(stats.line())
         if state["stats_json"] is not None:
-            write_stats(state["stats_json"], stats, engines_used(state["pipe"], values["provider"]))
+            engines = engines_used(state["pipe"], values["provider"])
+            write_stats(state["stats_json"], stats, engines, phase)
 
     life = Lifecycle(report)
     life.install()  # first: every thread started after it (numpy's BLAS pool too) inherits the block
@@ -250,8 +253,9 @@ def _start(
         name = flag_names.get(str(err.path), "provider" if "provider" in str(err.path) else None)
         raise MsdnetError(origin.get(name, err.path) if name else err.path, err.cause) from None
     cfg = config_from(values, artifact, origin)
+    state["phase"] = "loading the model"  # with provider auto and no cached picks: measuring engines
     pipe = Pipeline(artifact, provider=values["provider"], threads=values["threads"] or None)
-    state["pipe"] = pipe
+    state["pipe"], state["phase"] = pipe, "warming up and joining DDS"
     preset = "radar_scan" if cfg.input_type == "radar_scan" else cfg.field_preset
     note = preset_note(preset, pipe.columns) if not cfg.fields else None
     if note:

@@ -80,6 +80,11 @@ class Lifecycle:
             self._serving = True
             return True
 
+    def serving_now(self) -> bool:
+        """Whether the node has entered the serving state."""
+        with self._state:
+            return self._serving
+
     def end(self, code: int = 0, error: MsdnetError | None = None) -> NoReturn:
         """Write the last words (``error``'s line, else the report) and leave the process with
         ``code`` (2 when the report itself fails); only the first caller does, the others wait."""

@@ -76,8 +76,8 @@ def _loader() -> Any:
 def _yaml_error(path: Path, err: Exception) -> MsdnetError:
     mark = getattr(err, "problem_mark", None)
     at = f" at line {mark.line + 1}" if mark is not None else ""
-    problem = getattr(err, "problem", None) or type(err).__name__
-    return MsdnetError(path, f"not YAML{at}: {shown(problem)[1:-1] if isinstance(problem, str) else problem}")
+    problem = " ".join(str(getattr(err, "problem", None) or type(err).__name__).split())
+    return MsdnetError(path, f"not YAML{at}: {problem[:100]}")
 
 
 def _check_events(path: Path, text: str) -> None:

@@ -132,9 +132,13 @@ class NodeStats:
         return f"msdnet-node: {text}"
 
 
-def write_stats(path: Path, stats: NodeStats, engines: dict[str, Any] | None = None) -> None:
-    """The final stats as JSON at ``path`` (atomically); ``engines``: what ``engines_used`` says."""
+def write_stats(
+    path: Path, stats: NodeStats, engines: dict[str, Any] | None = None, stopped_while: str | None = None
+) -> None:
+    """The final stats as JSON at ``path`` (atomically); ``engines``: what ``engines_used`` says;
+    ``stopped_while``: the node's state when it was stopped (``serving``, ``loading the model``, ...)."""
     body = stats.summary() | ({} if engines is None else {"engines": engines})
+    body |= {} if stopped_while is None else {"stopped_while": stopped_while}
     with atomic_output(path) as tmp:
         Path(tmp).write_text(json.dumps(body, indent=1) + "\n", encoding="utf-8")
 
