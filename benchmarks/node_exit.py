@@ -81,9 +81,16 @@ class _Lines:
 
 
 def run_cycle(
-    index: int, work: Path, model: Path | None, signum: int, delay_s: float, load_hz: float | None
+    index: int,
+    work: Path,
+    model: Path | None,
+    signum: int,
+    delay_s: float,
+    load_hz: float | None,
+    domain: int | None = None,
 ) -> dict[str, Any]:
-    """One start / signal / exit cycle (module docstring) in ``work``; -> its record."""
+    """One start / signal / exit cycle (module docstring) in ``work`` on DDS ``domain`` (default
+    ``DOMAIN_BASE + index``); -> its record."""
     from msdnet.runtime.frontends.live.dds import loopback_env
 
     folder = work / f"cycle-{index:02d}"
@@ -91,7 +98,7 @@ def run_cycle(
     env = loopback_env(folder)
     env["HOME"], env["XDG_CACHE_HOME"] = str(folder / "home"), str(folder / "xdg")
     stats_path = folder / "stats.json"
-    domain = DOMAIN_BASE + index
+    domain = DOMAIN_BASE + index if domain is None else domain
     cmd = [sys.executable, "-m", "msdnet.runtime.frontends.live.cli", "--domain-id", str(domain)]
     cmd += ["--stats-json", str(stats_path)] + ([] if model is None else ["--model", str(model)])
     publisher = None

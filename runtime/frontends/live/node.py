@@ -91,9 +91,13 @@ def _receive(
     while not stop.is_set():
         waitset.wait(duration(seconds=POLL_S))
         if watch is not None:
-            watch.poll()
-            with stats.lock:
-                stats.unmatched_writers = watch.count
+            try:
+                watch.poll()
+            except Exception:  # noqa: BLE001 - naming unmatched writers must never stop the receiving
+                watch = None
+            else:
+                with stats.lock:
+                    stats.unmatched_writers = watch.count
         while not stop.is_set():
             try:
                 samples = reader.take(N=1)

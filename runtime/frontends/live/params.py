@@ -50,7 +50,11 @@ class Param:
         return "--" + FLAG_NAMES.get(self.name, self.name.replace("_", "-"))
 
 
-FLAG_NAMES = {"input_topic": "topic", "fields": "field"}  # flags not named after their parameter
+FLAG_NAMES = {
+    "input_topic": "topic",
+    "fields": "field",
+    "diagnostics_period_s": "diagnostics-period",
+}  # flags not named after their parameter
 
 PARAMS: tuple[Param, ...] = (
     Param("node_name", "str", NODE_NAME, "ROS 2 node name: ~/debug topics and diagnostics follow it."),
