@@ -11,7 +11,8 @@ same node input (node names are scoped and stable; initializer names are not whe
 merged equal tensors) then gives that element's value. The result is checked by exporting the recovered model
 again: every initializer of every graph must equal the shipped one byte for byte.
 
-What no graph holds stays at its fresh initialisation and is listed (``Recovered.absent``): for a
+What no graph holds is set to zeros (a committed checkpoint then stores it in almost no space)
+and is listed (``Recovered.absent``): for a
 student, the frozen teacher's LiDAR encoder and S2D (the distillation target of full student
 training, which a recovered checkpoint therefore cannot do; ``--distill`` and ``--head-only``
 runs do not need it).
@@ -53,7 +54,7 @@ class Recovered:
     cfg: ModelConfig  # the manifest's config
     kind: str  # student | r2ldm
     elements: int  # weight elements read back from the graphs
-    absent: tuple[str, ...]  # state_dict prefixes no graph holds (left at their fresh values)
+    absent: tuple[str, ...]  # state_dict prefixes no graph holds (set to zeros)
 
 
 Slots = dict[tuple[str, int], str]  # (node name, input slot) -> the initializer it reads
@@ -174,6 +175,7 @@ def recover_model(root: str | Path) -> Recovered:
             elements += int(got.sum())
             if not got.any():
                 absent.add(_module_of(key))
+                state[key].zero_()  # no value to recover: zeros, not a random draw
                 continue
             if not got.all():
                 raise MsdnetError(root, f"{key}: {int((~got).sum())} of {got.size} elements in no graph")
@@ -246,7 +248,7 @@ def main(model_dir: Path, out: Path, dataset: str | None, data: Path | None, hol
     folder, rec = recover_checkpoint(model_dir, out, split)
     click.echo(
         f"{rec.kind}: {rec.elements:,} weight elements read back from {model_dir}, re-export identical"
-        f" -> {folder}; in no graph (fresh values): {', '.join(rec.absent) or 'none'}"
+        f" -> {folder}; in no graph (zeros): {', '.join(rec.absent) or 'none'}"
     )
 
 

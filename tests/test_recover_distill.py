@@ -36,7 +36,7 @@ def recovered(exported, tmp_path_factory) -> Path:
 
 def test_recovered_weights_are_the_checkpoints_own(exported, recovered):
     """Every weight of the radar path comes back exactly; the teacher's LiDAR branch is in no
-    graph (fresh values), and the checkpoint says where it came from."""
+    graph (zeros), and the checkpoint says where it came from."""
     original = load_checkpoint(exported[0])[0].state_dict()
     back, _, state = load_checkpoint(recovered)
     back = back.state_dict()
@@ -46,6 +46,8 @@ def test_recovered_weights_are_the_checkpoints_own(exported, recovered):
     used = [k for k in original if k.startswith("teacher.head.") and not k.startswith(coarse)]
     assert len(used) > 20 and all(torch.equal(original[k], back[k]) for k in used)
     assert state.recovered_from == str(exported[1])
+    lidar = [k for k in back if k.startswith(("teacher.encoder.", "teacher.s2d."))]
+    assert lidar and all(not back[k].any() for k in lidar)
 
 
 def test_recover_refuses_a_graph_this_export_does_not_write(exported, tmp_path):
