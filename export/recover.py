@@ -96,15 +96,20 @@ def _up_style(root: Path) -> str:
     return "conv_transpose" if "ConvTranspose" in ops else "depth_to_space"
 
 
+def encoder_form(manifest: dict) -> str:
+    """The encoder form a manifest records (``encoder_form``; absent: the rulebook form)."""
+    return str(manifest.get("encoder_form", "rulebook"))
+
+
 def _export(
-    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, style: str
+    model: torch.nn.Module, kind: str, cfg: ModelConfig, folder: Path, style: str, form: str = "rulebook"
 ) -> dict[str, tuple[dict[str, np.ndarray], dict[str, tuple[str, int]]]]:
     """file -> (initializers, the first reader of each) of ``model``'s export, its head's
-    up-sampling exported in ``style``."""
+    up-sampling exported in ``style``, its encoder in ``form`` (the manifest's ``encoder_form``)."""
     from msdnet.export.graphs import export_all
 
     with up_export_style(style):
-        export_all(model, kind, cfg, folder)
+        export_all(model, kind, cfg, folder, form)
     graphs = {p.name: _read_graph(p) for p in sorted(folder.glob("*.onnx"))}
     return {file: (inits, _first_reader(slots)) for file, (inits, slots) in graphs.items()}
 
@@ -141,8 +146,9 @@ def recover_model(root: str | Path) -> Recovered:
         raise MsdnetError(root, f"{total - BASE} weight elements: more than the probe can index")
     flat = [np.full(t.numel(), np.nan) for _, t in entries]  # recovered values, NaN = not seen
     style = _up_style(root)
+    form = encoder_form(manifest)
     with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
-        probed = _export(probe, kind, cfg, Path(tmp), style)
+        probed = _export(probe, kind, cfg, Path(tmp), style, form)
     for file, (inits, consumers) in probed.items():
         if not (root / file).is_file():
             continue  # an optional graph the folder does not carry
@@ -180,14 +186,16 @@ def recover_model(root: str | Path) -> Recovered:
             if not got.all():
                 raise MsdnetError(root, f"{key}: {int((~got).sum())} of {got.size} elements in no graph")
             state[key].copy_(torch.from_numpy(values.reshape(tensor.shape)).to(state[key].dtype))
-    _check_same(model, kind, cfg, root, style)
+    _check_same(model, kind, cfg, root, style, form)
     return Recovered(model, cfg, kind, elements, tuple(sorted(absent)))
 
 
-def _check_same(model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path, style: str) -> None:
+def _check_same(
+    model: torch.nn.Module, kind: str, cfg: ModelConfig, root: Path, style: str, form: str
+) -> None:
     """Export ``model`` again: every initializer of each graph the folder has must be the same bytes."""
     with tempfile.TemporaryDirectory(prefix="msdnet-recover-") as tmp:
-        again = _export(model, kind, cfg, Path(tmp), style)
+        again = _export(model, kind, cfg, Path(tmp), style, form)
     for file, (inits, consumers) in again.items():
         if not (root / file).is_file():
             continue

@@ -3,7 +3,8 @@
 ``python -m msdnet.export.refresh MODEL [--out DIR]``: the weights are read back out of MODEL's
 graphs (``export.recover``, which checks them by an identical re-export of the old form) and
 exported again as this exporter writes them (e.g. the head's 2x up-sampling as one
-``ConvTranspose`` instead of a 1x1x1 conv and an 8-D ``Transpose``). The new folder keeps the old
+``ConvTranspose`` instead of a 1x1x1 conv and an 8-D ``Transpose``), the encoder in the form the
+manifest records (``encoder_form``: rulebook or pairs). The new folder keeps the old
 manifest's threshold, gate, calibration records, default step count, source and every other file
 (``MODEL.md``, ``LICENSE.md``); only ``graphs``, ``versions`` and ``opset`` change, and a
 ``refreshed`` record lists the old hashes.
@@ -80,7 +81,7 @@ def refresh_model(root: str | Path, out: str | Path | None = None) -> Refreshed:
     from msdnet.export.cli import check_out, publish
     from msdnet.export.graphs import export_all
     from msdnet.export.manifest import build_manifest
-    from msdnet.export.recover import recover_model
+    from msdnet.export.recover import encoder_form, recover_model
 
     root = Path(root)
     out = root if out is None else Path(out)
@@ -104,8 +105,10 @@ def refresh_model(root: str | Path, out: str | Path | None = None) -> Refreshed:
     try:
         with tempfile.TemporaryDirectory(prefix="msdnet-refresh-") as graphs_dir:
             new_dir = Path(graphs_dir)
-            params, _ = export_all(rec.model, rec.kind, rec.cfg, new_dir)
-            fresh = build_manifest(new_dir, rec.kind, rec.cfg, params, old_manifest.get("source", ""))
+            form = encoder_form(old_manifest)  # the encoder stays in the form it was exported in
+            params, _ = export_all(rec.model, rec.kind, rec.cfg, new_dir, form)
+            source = old_manifest.get("source", "")
+            fresh = build_manifest(new_dir, rec.kind, rec.cfg, params, source, encoder_form=form)
             for f in root.iterdir():  # the old folder's files, then the new graphs over its graphs
                 if f.is_file() and f.name not in (MANIFEST, SIGNATURE):
                     shutil.copy2(f, tmp / f.name)

@@ -30,7 +30,7 @@ from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.range_threshold import RangeThresholds, range_thresholds_from
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
-from msdnet.runtime.model.onnx_check import external_tensors
+from msdnet.runtime.model.onnx_check import external_tensors, graph_inputs
 
 MANIFEST = "manifest.json"
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024  # a manifest is a few hundred kB at most
@@ -160,6 +160,26 @@ def _check_graph(root: Path, entry: Any) -> tuple[str, bytes]:
     return name, data
 
 
+def _check_encoder_form(
+    where: Path, manifest: dict[str, Any], form: str, rulebook: onnx_spec.GraphSpec, graph: bytes
+) -> None:
+    """The manifest's ``encoder_form`` (absent: rulebook) must be the form of ``encoder.onnx``'s
+    inputs; MsdnetError naming the field when the graph is in the other form."""
+    got = graph_inputs(graph)
+    forms = {f: onnx_spec.encoder_spec_of(rulebook, f).inputs for f in onnx_spec.ENCODER_FORMS}
+    if got == forms[form]:
+        return
+    actual = next((f for f, inputs in forms.items() if inputs == got), None)
+    if actual is None:
+        return  # neither form: the graph contract check names the inputs
+    said = f"encoder_form {form!r}" if "encoder_form" in manifest else "no encoder_form (the rulebook form)"
+    raise MsdnetError(
+        where,
+        f"{said} disagrees with {onnx_spec.ENCODER.file}, whose inputs are the {actual} form's: "
+        f'the manifest field must be "encoder_form": "{actual}"',
+    )
+
+
 def _input_spec(manifest: dict[str, Any], where: Path) -> InputSpec:
     block = _need(manifest, "input", where, dict)
     columns = tuple(_need(block, "columns", where, list))
@@ -231,6 +251,7 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
     form = manifest.get("encoder_form", "rulebook")  # absent in manifests before the pair form
     if form not in onnx_spec.ENCODER_FORMS:
         raise MsdnetError(where, f"encoder_form {form!r} is not one of {', '.join(onnx_spec.ENCODER_FORMS)}")
+    rulebook = next((s for s in specs if s.file == onnx_spec.ENCODER.file), None)
     specs = tuple(onnx_spec.encoder_spec_of(s, form) if s.file == "encoder.onnx" else s for s in specs)
     needed = [s.file for s in specs]
     if sorted(map(str, listed)) != sorted(needed):
@@ -238,6 +259,8 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
         detail = f"missing {missing}" if missing else f"unexpected {sorted(map(str, listed))}"
         raise MsdnetError(where, f"graph list does not match a {kind} model ({detail})")
     graphs = dict(_check_graph(root, e) for e in entries)
+    if rulebook is not None:
+        _check_encoder_form(where, manifest, form, rulebook, graphs[onnx_spec.ENCODER.file])
     threshold = float(_need(manifest, "threshold", where, (int, float)))
     if not (math.isfinite(threshold) and 0.0 < threshold < 1.0):
         raise MsdnetError(where, f"threshold {threshold} not in (0, 1)")

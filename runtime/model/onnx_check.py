@@ -35,9 +35,11 @@ SUBSET: dict[str, list[tuple[str, int, str, bool]]] = {
         ("sparse_tensors", 23, "SparseTensorProto", True),
     ],
     "NodeProto": [("attribute", 5, "AttributeProto", True)],
+    "ValueInfoProto": [("name", 1, "string", False)],
     "GraphProto": [
         ("node", 1, "NodeProto", True),
         ("initializer", 5, "TensorProto", True),
+        ("input", 11, "ValueInfoProto", True),
         ("sparse_initializer", 15, "SparseTensorProto", True),
     ],
     "FunctionProto": [("node", 7, "NodeProto", True)],
@@ -102,16 +104,29 @@ def _node_tensors(node: Any) -> list[Any]:
     return out
 
 
-def external_tensors(model: bytes) -> list[str]:
-    """Names of tensors in serialized ONNX ``model`` whose data lives in another file.
-
-    Raises ``ValueError`` when the bytes are not a parseable ONNX model.
-    """
+def _parse(model: bytes) -> Any:
     proto = _model_class()()
     try:
         proto.ParseFromString(model)
     except Exception as err:  # protobuf's DecodeError and friends
         raise ValueError(f"not an ONNX model ({type(err).__name__})") from err
+    return proto
+
+
+def graph_inputs(model: bytes) -> tuple[str, ...]:
+    """The names of the main graph's inputs in serialized ONNX ``model``, initializers listed as
+    inputs (older IR versions) left out. Raises ``ValueError`` when the bytes are not ONNX."""
+    graph = _parse(model).graph
+    weights = {t.name for t in graph.initializer}
+    return tuple(i.name for i in graph.input if i.name not in weights)
+
+
+def external_tensors(model: bytes) -> list[str]:
+    """Names of tensors in serialized ONNX ``model`` whose data lives in another file.
+
+    Raises ``ValueError`` when the bytes are not a parseable ONNX model.
+    """
+    proto = _parse(model)
     tensors = _graph_tensors(proto.graph)
     for info in proto.training_info:
         tensors += _graph_tensors(info.initialization) + _graph_tensors(info.algorithm)
