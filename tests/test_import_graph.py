@@ -43,10 +43,12 @@ TORCH_SIDE = {
     "msdnet.benchmarks.latency.steps": "reads a checkpoint's config for the step sweep",
     "msdnet.benchmarks.latency.head": "times the coarse-to-fine head at the gate export calibrates",
     "msdnet.benchmarks.latency.encoder_forms": "exports a torch encoder in the pair and rulebook forms",
+    "msdnet.benchmarks.training_speed_worker": "trains the torch models to time their steps",
 }
 # runtime sub-package -> the sub-packages its modules may import (besides its own)
 MAY_IMPORT = {
     "errors": set(),
+    "offline": set(),  # the engines' telemetry off (runtime/__init__.py applies it first)
     "engine": {"errors", "model"},
     "model": {"errors", "engine"},
     "io": {"errors", "engine", "model"},
