@@ -44,12 +44,13 @@ def check_file(flag: str, path: Path) -> Path:
 def check_model_folder(flag: str, path: Path, kinds: Sequence[str] = ("student", "r2ldm")) -> Any:
     """The checked ``Artifact`` of the exported folder ``path``, whose kind is one of ``kinds``
     (a published R2LDM with its own sampler counts as ``r2ldm``); MsdnetError naming ``flag``."""
-    from msdnet.runtime.model.artifact import MANIFEST, load_artifact
+    from msdnet.runtime.model.artifact import load_artifact
 
-    check_folder(flag, path)
-    if not (path / MANIFEST).is_file():
-        raise MsdnetError(flag, f"{path} is not an exported model folder (no {MANIFEST})")
-    artifact = load_artifact(path)
+    try:
+        artifact = load_artifact(path)
+    except MsdnetError as err:  # named after the option, and the graph inside the folder
+        inside = err.path is not None and Path(err.path).parts[: len(path.parts)] == path.parts
+        raise MsdnetError(flag, str(err) if inside else f"{path / str(err.path)}: {err.cause}") from None
     if artifact.kind not in kinds:
         want = " or ".join(KIND_NAMES.get(k, k) for k in kinds)
         held = KIND_NAMES.get(artifact.kind, artifact.kind)

@@ -102,7 +102,7 @@ def _methods(
 )
 @model_options
 @one_line_errors
-@checks_outputs(out="into")  # before any work
+@checks_outputs(out="into", save="into")  # before any work
 def quality_command(**opts: Any) -> None:
     """Quality against the LiDAR of raw radar, R2LDM, MSDNet (torch / onnxruntime) and ablations:
     scene and object metrics per frame and their means."""

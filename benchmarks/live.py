@@ -376,9 +376,19 @@ def live_command(
     from msdnet.runtime.io.atomic import check_writable
 
     cyclonedds()
+    from msdnet.benchmarks.args import check_model_folder
+    from msdnet.runtime.engine.pointcloud import canonical_column
+    from msdnet.runtime.io.files import read_cloud
+
+    columns = check_model_folder("--model", resolve_model(model)).inputs.columns
     files = sorted((data / "radar" / "training" / "velodyne").glob("*.bin"))
     if not files:
         raise MsdnetError(data, "no radar/training/velodyne/*.bin scans (a VoD folder)")
+    have = {canonical_column(c) for c in read_cloud(files[0]).columns}
+    missing = [c for c in columns if canonical_column(c) not in have]
+    if missing:  # every scan would be refused by the node: nothing to time
+        cause = f"reads columns {' '.join(columns)}; the --data scans have no {' '.join(missing)}"
+        raise MsdnetError("--model", cause)
     check_writable(out, "into")  # before any work
     doc = live_bench(
         resolve_model(model),

@@ -17,7 +17,9 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
+from msdnet.benchmarks.args import PRESETS  # training.config.MODEL_PRESETS, named torch-free
 from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.io.atomic import checks_outputs
 
 if TYPE_CHECKING:
     from torch import nn
@@ -25,7 +27,6 @@ if TYPE_CHECKING:
     from msdnet.training.config import ModelConfig
 
 PAPER_MILLIONS = {"student": 20.5, "r2ldm": 40.3}  # MSDNet Tab. IV (R2LDM's own paper: 40.1 M)
-PRESETS = ("tiny", "lite", "paper", "paper-width")  # training.config.MODEL_PRESETS, named torch-free
 
 
 def _count(module: nn.Module) -> int:
@@ -94,6 +95,7 @@ def params_markdown(tables: dict[str, dict[str, int]]) -> str:
     help="Folder for results.json and results.md [print only].",
 )
 @one_line_errors
+@checks_outputs(out="into")  # before any work
 def params_command(presets: tuple[str, ...], out: Path | None) -> None:
     """Parameter counts of the teacher, the MSDNet student and R2LDM per module, for each PRESET
     (default: all), beside the papers' totals. Needs the train extra (torch):

@@ -179,6 +179,10 @@ def soak_command(
     if not Path("/proc/self/status").is_file():
         raise MsdnetError("soak", "needs Linux /proc to read the process's resident memory")
     files = collect_inputs(inputs)
+    if model is not None:
+        from msdnet.benchmarks.args import check_model_folder
+
+        check_model_folder("--model", model)  # before the soak process starts
     res = run_soak(files, resolve_model(model), frames, warmup, steps, threads, limit_pct)
     click.echo(
         f"soak: {res.frames} frames in {res.seconds:.0f} s; RSS {res.rss_baseline_mib:.1f} MiB after "

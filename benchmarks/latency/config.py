@@ -1,4 +1,5 @@
-"""Settings of one ``msdnet-bench latency`` run (``suite.run_latency``), and the quick run's."""
+"""Settings of one ``msdnet-bench latency`` run (``suite.run_latency``), the quick run's, and the
+checks of its inputs before anything is timed."""
 
 from __future__ import annotations
 
@@ -51,3 +52,17 @@ def quick_config(out: Path, **kw: Any) -> LatencyConfig:
     base |= {"steps": (1, 50), "point_counts": (1000, 100000), "frames": 1}
     base |= {"torch_compile": False, "peer_repeats": 2, "stream_frames": 3}
     return LatencyConfig(out=out, **(base | kw))
+
+
+def check_inputs(cfg: LatencyConfig) -> None:
+    """Every model folder and the dataset root, before anything is timed (``benchmarks.args``):
+    --model an MSDNet folder, --r2ldm an R2LDM one, --before an MSDNet one, --data a folder."""
+    from msdnet.benchmarks.args import check_folder, check_model_folder
+
+    for flag, folder, kinds in (("--model", cfg.model, ("student",)), ("--r2ldm", cfg.r2ldm, ("r2ldm",))):
+        if folder is not None:
+            check_model_folder(flag, Path(folder), kinds)
+    if cfg.before is not None:
+        check_model_folder("--before", Path(cfg.before), ("student",))
+    if cfg.data is not None:
+        check_folder("--data", Path(cfg.data))

@@ -24,6 +24,7 @@ from typing import Any
 import click
 import numpy as np
 
+from msdnet.benchmarks.args import PRESETS
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 
 
@@ -44,6 +45,28 @@ def _encoder(preset: str, model: Path | None) -> tuple[Any, Any]:
     cfg = config_for_dataset(MODEL_PRESETS[preset], "astyx")
     torch.manual_seed(0)
     return SparseEncoder(cfg, "radar").eval(), cfg
+
+
+def check_inputs(data: Path, model: Path | None) -> None:
+    """Before torch is imported or anything exported: ``data`` holds Astyx validation frames, and
+    ``model`` (when given) is an exported folder whose input columns those frames hold."""
+    from msdnet.benchmarks.args import check_folder, check_model_folder
+    from msdnet.runtime.io.datasets import open_dataset
+
+    ds = open_dataset("astyx", check_folder("--data", data), split="val")
+    if len(ds) == 0:
+        raise MsdnetError("--data", f"{data}: no Astyx validation frames")
+    if model is None:
+        return
+    columns = tuple(check_model_folder("--model", model).inputs.columns)
+    have = tuple(ds[0].radar.columns)
+    missing = [c for c in columns if c not in have]
+    if missing:
+        raise MsdnetError(
+            "--model",
+            f"{model} reads columns {' '.join(columns)}; Astyx frames have {' '.join(have)} "
+            f"(no {' '.join(missing)}): a model trained on Astyx is needed",
+        )
 
 
 def _time(run: Any, repeats: int) -> tuple[float, float]:
@@ -130,7 +153,9 @@ def compare(
 
 
 @click.command("encoders", context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--preset", default="lite", show_default=True, help="Encoder widths and grid.")
+@click.option(
+    "--preset", type=click.Choice(PRESETS), default="lite", show_default=True, help="Encoder widths and grid."
+)
 @click.option("--model", type=click.Path(path_type=Path), help="An exported model: its own encoder.")
 @click.option("--data", type=click.Path(path_type=Path), required=True, help="Astyx dataset root.")
 @click.option("--frames", type=click.IntRange(min=1), default=20, show_default=True)
@@ -144,6 +169,7 @@ def encoders_command(
     onnxruntime and OpenVINO. Needs the train extra (torch): pip install 'msdnet[train]'."""
     if importlib.util.find_spec("torch") is None:
         raise MsdnetError("msdnet-bench encoders", "needs torch: pip install 'msdnet[train]'")
+    check_inputs(data, model)
     res = compare(preset, data, frames, repeats, threads, model)
     click.echo(
         f"{preset if model is None else model}: {res['frames']} Astyx frames (median "

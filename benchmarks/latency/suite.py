@@ -33,7 +33,7 @@ import numpy as np
 
 from msdnet.benchmarks.latency.before import before_comparison, before_threshold, load_before
 from msdnet.benchmarks.latency.compare import int8_comparison, torch_comparison
-from msdnet.benchmarks.latency.config import LatencyConfig, quick_config  # noqa: F401 - cli and tests
+from msdnet.benchmarks.latency.config import LatencyConfig, check_inputs, quick_config  # noqa: F401 - cli and tests
 from msdnet.benchmarks.latency.head import choose_gate, coarse_to_fine_gate, head_comparison
 from msdnet.benchmarks.latency.inputs import (  # tests read _frame_stream, _models and _named here
     STREAM_SEED_STRIDE,
@@ -131,8 +131,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
             f"{SHARED}'s pool spins between graphs and would slow the engines timed beside it: "
             "use --no-peers, without --against-old or --before",
         )
-    if cfg.before is not None and not (Path(cfg.before) / "manifest.json").is_file():
-        raise MsdnetError("--before", f"{cfg.before} is not an exported model folder (no manifest.json)")
+    check_inputs(cfg)  # the model folders and the data root, before anything is timed
     load_start = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="msdnet-latency-") as tmp:
         scratch = Path(tmp)
