@@ -1,6 +1,7 @@
 """The model a front-end runs and the options checked against it (``msdnet-infer``, ``msdnet-node``).
 
-- ``resolve_model``: ``--model DIR``, else the bundled ``sim-lite`` (``BUNDLED_MODEL``);
+- ``resolve_model``: ``--model``, a folder or a shipped model's name (``astyx-lite``), else the
+  shipped ``sim-lite`` (``BUNDLED_MODEL``);
 - ``check_model_options``: the model (hashes, ``--trusted-key`` signature), ``--provider``,
   ``--threshold`` and ``--steps``, checked before any input is read; each problem is one line.
 """
@@ -10,16 +11,17 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import msdnet.models
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.model.shipped import DEFAULT_MODEL, SHIPPED_DIR, find_model
 
-BUNDLED_MODEL = Path(msdnet.models.__file__).resolve().parent / "sim-lite"  # shipped default model
+BUNDLED_MODEL = SHIPPED_DIR / DEFAULT_MODEL  # shipped default model
 
 
-def resolve_model(model: Path | None) -> Path:
-    """--model, or the bundled model; MsdnetError when neither exists."""
+def resolve_model(model: str | Path | None) -> Path:
+    """--model (a folder, or a shipped model's name), or the bundled model; MsdnetError when
+    neither exists, an unknown name listing the shipped ones."""
     if model is not None:
-        return model
+        return find_model(model)
     if (BUNDLED_MODEL / "manifest.json").is_file():
         return BUNDLED_MODEL
     raise MsdnetError(

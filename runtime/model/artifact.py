@@ -1,4 +1,5 @@
 """An exported model folder: ``manifest.json`` plus the ONNX graphs it lists, checked before use.
+The folder is a path or a shipped model's name (``astyx-lite``: ``runtime/model/shipped``).
 
 Checks, in order, each failing with :class:`MsdnetError` naming the file and the cause:
 the folder and manifest are real files (no symlinks), the manifest parses and has this
@@ -31,6 +32,7 @@ from msdnet.runtime.engine.range_threshold import RangeThresholds, range_thresho
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.onnx_check import external_tensors, graph_inputs
+from msdnet.runtime.model.shipped import find_model, shipped_names
 
 MANIFEST = "manifest.json"
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024  # a manifest is a few hundred kB at most
@@ -103,12 +105,14 @@ def _regular_file(path: Path, what: str) -> None:
 
 def read_manifest(root: str | Path, trusted_key: str | Path | None = None) -> dict[str, Any]:
     """Parse ``root/manifest.json`` (its signature first, with ``trusted_key``) and check its
-    format version."""
-    root = Path(root)
+    format version. ``root`` is a folder or a shipped model's name (``shipped.find_model``)."""
+    root = find_model(root)
     if root.is_symlink():
         raise MsdnetError(root, "model folder is a symlink; refusing to follow it")
     if not root.is_dir():
-        raise MsdnetError(root, "model folder not found")
+        raise MsdnetError(
+            root, f"model folder not found (shipped models, by name: {', '.join(shipped_names())})"
+        )
     path = root / MANIFEST
     _regular_file(path, "manifest")
     if path.stat().st_size > MAX_MANIFEST_BYTES:
@@ -230,8 +234,9 @@ def _configs(manifest: dict[str, Any], where: Path) -> tuple[GridConfig, Diffusi
 
 def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Artifact:
     """Read and check a model folder (see the module docstring); graphs come back as bytes.
-    ``trusted_key``: refuse a manifest not signed by this ed25519 public key (PEM file)."""
-    root = Path(root)
+    ``root``: a folder or a shipped model's name (``astyx-lite``); ``trusted_key``: refuse a
+    manifest not signed by this ed25519 public key (PEM file)."""
+    root = find_model(root)
     manifest = read_manifest(root, trusted_key)
     where = root / MANIFEST
     kind = _need(manifest, "model_kind", where, str)

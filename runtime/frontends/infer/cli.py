@@ -77,7 +77,11 @@ OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 
 @click.command(context_settings={"help_option_names": ["-h", "--help"]})
 @click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--model", type=click.Path(path_type=Path), help="msdnet-export folder [bundled].")
+@click.option(
+    "--model",
+    type=click.Path(path_type=Path),
+    help="A shipped model's name (astyx-lite, sim-lite, ...) or an msdnet-export folder [sim-lite].",
+)
 @click.option("--out", required=True, type=click.Path(path_type=Path), help="Output folder.")
 @click.option("--format", "fmt", type=click.Choice(WRITE_FORMATS), default="npy", show_default=True)
 @click.option("--steps", type=click.IntRange(min=1), help="DDIM steps [manifest T_m].")

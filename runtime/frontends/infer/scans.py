@@ -6,7 +6,7 @@
   ``x y z ...`` or holds at least three numbers (a licence, a frame list, a calibration or a label
   file is left alone);
 - ``check_columns``: the columns of the scans against the model's input columns; where they do not
-  fit, one error for the run that names the shipped models whose columns fit.
+  fit, one error for the run that names, by name, the shipped models whose columns fit.
 """
 
 from __future__ import annotations
@@ -98,6 +98,13 @@ def shown(path: Path) -> str:
         return str(path)
 
 
+def model_shown(folder: Path) -> str:
+    """A shipped model by its name (what ``--model`` takes from any folder), another by its path."""
+    from msdnet.runtime.model.shipped import shipped_name
+
+    return shipped_name(folder) or shown(folder)
+
+
 def shipped_models_for(columns: Sequence[str], models_root: Path) -> list[Path]:
     """The shipped model folders under ``models_root`` whose input columns the scans hold, the
     full MSDNet models first."""
@@ -124,13 +131,13 @@ def check_columns(
         return
     fits = [f for f in shipped_models_for(columns, models_root) if f.resolve() != model_dir.resolve()]
     if fits:
-        also = f" (so do {', '.join(shown(f) for f in fits[1:])})" if len(fits) > 1 else ""
-        advice = f"use --model {shown(fits[0])}, which reads these columns{also}"
+        also = f" (so do {', '.join(model_shown(f) for f in fits[1:])})" if len(fits) > 1 else ""
+        advice = f"use --model {model_shown(fits[0])}, which reads these columns{also}"
     else:
         advice = "no shipped model reads them: train one on your own data (docs/own-data.md)"
     raise MsdnetError(
         what,
-        f"the scans have columns {' '.join(columns)}; the model {shown(model_dir)} needs "
+        f"the scans have columns {' '.join(columns)}; the model {model_shown(model_dir)} needs "
         f"{' '.join(model_columns)} ({', '.join(missing)} missing); {advice}",
     )
 

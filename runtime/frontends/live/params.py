@@ -77,7 +77,7 @@ PARAMS: tuple[Param, ...] = (
     ),
     Param("output_topic", "str", "", "Dense cloud topic; empty: input_topic + /dense."),
     Param("domain_id", "int", 0, "DDS domain (ROS_DOMAIN_ID).", low=0, high=232),
-    Param("model", "str", "", "msdnet-export folder; empty: the bundled model."),
+    Param("model", "str", "", "shipped model name or msdnet-export folder; empty: sim-lite."),
     Param(
         "provider",
         "str",
