@@ -103,7 +103,9 @@ def run_cycle(
     cmd += ["--stats-json", str(stats_path)] + ([] if model is None else ["--model", str(model)])
     publisher = None
     start = time.monotonic()
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    err_path = folder / "stderr.txt"
+    with open(err_path, "w", encoding="utf-8") as err_file:  # stdout is read line by line below
+        proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=err_file, text=True)
     lines = _Lines(proc.stdout)
     if load_hz is None:
         time.sleep(max(0.0, start + delay_s - time.monotonic()))
@@ -117,12 +119,13 @@ def run_cycle(
     sent = time.monotonic()
     proc.send_signal(signum)
     try:
-        _, err = proc.communicate(timeout=60.0)
+        proc.wait(timeout=60.0)
     except subprocess.TimeoutExpired:
         proc.kill()
-        _, err = proc.communicate()
+        proc.wait()
     exit_s = time.monotonic() - sent
     lines.join()
+    err = err_path.read_text(encoding="utf-8", errors="replace")
     if publisher is not None:
         publisher.kill()
         publisher.wait()
@@ -178,8 +181,8 @@ def markdown(doc: dict[str, Any]) -> str:
         f"Machine: {m.get('cpu', '?')}, {m.get('logical_cores', '?')} logical cores, load average "
         f"{doc['load_before']:.2f} before and {doc['load_after']:.2f} after. {doc['note']}",
         "",
-        "| cycle | signal | after | delay s | state | engines measured | exit | exit s | stats line | stats "
-        "file | received / published |",
+        "| cycle | signal | after | delay s | state | engine picks measured | exit | exit s | stats line "
+        "| stats file | received / published |",
         "|---:|---|---|---:|---|---|---:|---:|---|---|---|",
     ]
     for c in doc["cycles"]:
