@@ -86,3 +86,13 @@ def test_export_from_the_smallest_models_checkpoint_reproduces_its_graphs(tmp_pa
     assert len(graphs) >= 4
     for name in graphs:
         _same_graph(tmp_path / "x" / name, shipped / name)
+
+
+@pytest.mark.parametrize("stage", STAGES, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_the_models_card_gives_the_stage_and_its_hash(stage):
+    card = ROOT / "models" / stage.parent.name / "MODEL.md"
+    if not card.exists():
+        pytest.skip(f"{stage.parent.name} is a stage of a model not shipped yet")
+    digest = read_meta(stage)[1]["files"]["model.safetensors"]
+    row = f"| {stage.name} | `checkpoints/{stage.parent.name}/{stage.name}` | `{digest}` |"
+    assert row in card.read_text(encoding="utf-8"), row
