@@ -1,18 +1,18 @@
 """``msdnet-bench node-exit``: msdnet-node stopped by a signal in every state of a first run.
 
-    msdnet-bench node-exit --cycles 10 --out docs/results/node-exit
+    msdnet-bench node-exit --runs 10 --out docs/results/node-exit
 
-Each cycle starts one ``msdnet-node`` at the default provider (``auto``) with a fresh, empty
+Each run starts one ``msdnet-node`` at the default provider (``auto``) with a fresh, empty
 engine cache (``XDG_CACHE_HOME``) and a fresh ``HOME``, so ``auto`` measures the engines in that
-process, as on a vehicle's first start. The ``--cycles`` cycles send the signal at delays spread
+process, as on a vehicle's first start. The ``--runs`` runs send the signal at delays spread
 evenly from ``--first-s`` to ``--last-s`` after the start (the model loading, the engines'
-measurement, the warm-up, joining DDS, and serving with no scan); the ``--load-cycles`` cycles wait
+measurement, the warm-up, joining DDS, and serving with no scan); the ``--load-runs`` runs wait
 for the ready line, start a publisher of synthetic scans at ``--hz`` and send the signal
 ``--load-s`` later, scans in flight. Every participant uses the loopback-only Cyclone configuration.
 
-A cycle passes when the node exits with status 0 within ``EXIT_LIMIT_S`` of the signal, its last
+A run passes when the node exits with status 0 within ``EXIT_LIMIT_S`` of the signal, its last
 stdout line is the stats line, the ``--stats-json`` file is whole JSON and stderr holds no
-traceback. Results: ``OUT/results.json`` and ``OUT/results.md`` (each cycle: the signal, its
+traceback. Results: ``OUT/results.json`` and ``OUT/results.md`` (each run: the signal, its
 delay, the state the node was in, the exit status and time, the stats it wrote).
 """
 
@@ -37,9 +37,9 @@ from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.io.atomic import checks_outputs
 
 EXIT_LIMIT_S = 5.0  # signal -> exit, at most (the node's own bound is GRACE_S while serving)
-DOMAIN_BASE = 150  # domain ids of the cycles: DOMAIN_BASE + cycle (apart from the tests')
+DOMAIN_BASE = 150  # domain ids of the runs: DOMAIN_BASE + run (apart from the tests')
 SIGNALS = {"SIGTERM": signal.SIGTERM, "SIGINT": signal.SIGINT}
-SCANS = 3  # synthetic scans the load cycles' publisher sends in turn
+SCANS = 3  # synthetic scans the load runs' publisher sends in turn
 SCAN_POINTS = 600  # points per synthetic scan
 
 
@@ -80,7 +80,7 @@ class _Lines:
         self._thread.join(timeout=5.0)
 
 
-def run_cycle(
+def start_and_stop(
     index: int,
     work: Path,
     model: Path | None,
@@ -89,11 +89,11 @@ def run_cycle(
     load_hz: float | None,
     domain: int | None = None,
 ) -> dict[str, Any]:
-    """One start / signal / exit cycle (module docstring) in ``work`` on DDS ``domain`` (default
+    """One start / signal / exit (module docstring) in ``work`` on DDS ``domain`` (default
     ``DOMAIN_BASE + index``); -> its record."""
     from msdnet.runtime.frontends.live.dds import loopback_env
 
-    folder = work / f"cycle-{index:02d}"
+    folder = work / f"run-{index:02d}"
     (folder / "home").mkdir(parents=True, exist_ok=True)
     env = loopback_env(folder)
     env["HOME"], env["XDG_CACHE_HOME"] = str(folder / "home"), str(folder / "xdg")
@@ -135,7 +135,7 @@ def run_cycle(
         stats = None
     last = lines.lines[-1][1] if lines.lines else ""
     record = {
-        "cycle": index,
+        "run": index,
         "signal": signal.Signals(signum).name,
         "delay_s": round(delay_s, 3),
         "after": "the ready line" if load_hz is not None else "the start",
@@ -169,26 +169,26 @@ def _bundled() -> Path:
 
 
 def markdown(doc: dict[str, Any]) -> str:
-    """results.md: the tally, then one row per cycle."""
+    """results.md: the tally, then one row per run."""
     m = doc["machine"]
     lines = [
         "# msdnet-node stopped by a signal on a first run",
         "",
-        f"{doc['passed']} of {len(doc['cycles'])} cycles exited 0 within {EXIT_LIMIT_S:g} s with the stats "
+        f"{doc['passed']} of {len(doc['runs'])} runs exited 0 within {EXIT_LIMIT_S:g} s with the stats "
         f"line and a whole stats JSON; each started with an empty engine cache and a fresh HOME, "
         f"provider {doc['provider']}, model `{doc['model']}`.",
         "",
         f"Machine: {m.get('cpu', '?')}, {m.get('logical_cores', '?')} logical cores, load average "
         f"{doc['load_before']:.2f} before and {doc['load_after']:.2f} after. {doc['note']}",
         "",
-        "| cycle | signal | after | delay s | state | engine picks measured | exit | exit s | stats line "
+        "| run | signal | after | delay s | state | engine picks measured | exit | exit s | stats line "
         "| stats file | received / published |",
         "|---:|---|---|---:|---|---|---:|---:|---|---|---|",
     ]
-    for c in doc["cycles"]:
+    for c in doc["runs"]:
         got = "" if c["received"] is None else f"{c['received']} / {c['published']}"
         lines.append(
-            f"| {c['cycle']} | {c['signal']} | {c['after']} | {c['delay_s']:g} | {c['state']} | "
+            f"| {c['run']} | {c['signal']} | {c['after']} | {c['delay_s']:g} | {c['state']} | "
             f"{'yes' if c['measured_engines'] else 'no'} | {c['returncode']} | {c['exit_s']:.2f} | "
             f"{'yes' if c['stats_line'] else 'NO'} | {'yes' if c['stats_file'] else 'NO'} | {got} |"
         )
@@ -196,8 +196,8 @@ def markdown(doc: dict[str, Any]) -> str:
 
 
 @click.command("node-exit", context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("--cycles", type=click.IntRange(min=0, max=200), default=10, show_default=True)
-@click.option("--load-cycles", type=click.IntRange(min=0, max=200), default=2, show_default=True)
+@click.option("--runs", type=click.IntRange(min=0, max=200), default=10, show_default=True)
+@click.option("--load-runs", type=click.IntRange(min=0, max=200), default=2, show_default=True)
 @click.option(
     "--signal", "signal_name", type=click.Choice(sorted(SIGNALS)), default="SIGTERM", show_default=True
 )
@@ -211,8 +211,8 @@ def markdown(doc: dict[str, Any]) -> str:
 @one_line_errors
 @checks_outputs(out="into")  # before any work
 def node_exit_command(
-    cycles: int,
-    load_cycles: int,
+    runs: int,
+    load_runs: int,
     signal_name: str,
     first_s: float,
     last_s: float,
@@ -222,8 +222,8 @@ def node_exit_command(
     note: str,
     out: Path,
 ) -> None:
-    """Start msdnet-node with an empty engine cache and stop it by a signal, CYCLES times across
-    its start-up and LOAD-CYCLES times with scans in flight: every exit must be 0 with its stats."""
+    """Start msdnet-node with an empty engine cache and stop it by a signal, --runs times across
+    its start-up and --load-runs times with scans in flight: every exit must be 0 with its stats."""
     import tempfile
 
     from msdnet.benchmarks.args import check_model_folder
@@ -233,22 +233,22 @@ def node_exit_command(
     cyclonedds()
     if last_s < first_s:
         raise MsdnetError("--last-s", f"must be >= --first-s ({first_s:g}), got {last_s:g}")
-    if cycles + load_cycles == 0:
-        raise MsdnetError("--cycles", "no cycle to run (--cycles and --load-cycles are both 0)")
+    if runs + load_runs == 0:
+        raise MsdnetError("--runs", "nothing to do (--runs and --load-runs are both 0)")
     if model is not None:
         check_model_folder("--model", model)
     signum = SIGNALS[signal_name]
-    delays = list(np.linspace(first_s, last_s, cycles)) if cycles > 1 else [first_s] * cycles
+    delays = list(np.linspace(first_s, last_s, runs)) if runs > 1 else [first_s] * runs
     records = []
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="msdnet-node-exit-") as tmp:
-        plan = [(d, None) for d in delays] + [(load_s, hz)] * load_cycles
+        plan = [(d, None) for d in delays] + [(load_s, hz)] * load_runs
         for i, (delay, rate) in enumerate(plan):
-            rec = run_cycle(i, Path(tmp), model, signum, float(delay), rate)
+            rec = start_and_stop(i, Path(tmp), model, signum, float(delay), rate)
             records.append(rec)
             verdict = "ok" if rec["ok"] else "FAILED"
             click.echo(
-                f"cycle {i}: {rec['signal']} {rec['delay_s']:g} s after {rec['after']} ({rec['state']}) -> "
+                f"run {i}: {rec['signal']} {rec['delay_s']:g} s after {rec['after']} ({rec['state']}) -> "
                 f"exit {rec['returncode']} in {rec['exit_s']:.2f} s, stats file "
                 f"{'yes' if rec['stats_file'] else 'no'}: {verdict}",
                 err=True,
@@ -256,7 +256,7 @@ def node_exit_command(
     doc = {
         "provider": "auto",
         "model": str(model or "bundled sim-lite"),
-        "cycles": records,
+        "runs": records,
         "passed": sum(r["ok"] for r in records),
         "load_before": load_before,
         "load_after": os.getloadavg()[0],
@@ -264,6 +264,6 @@ def node_exit_command(
         "machine": asdict(machine_info(sgemm=False)),
     }
     write_markdown_and_json(doc, markdown(doc), out, "results")
-    click.echo(f"{doc['passed']} of {len(records)} cycles passed; wrote {out}/results.json and results.md")
+    click.echo(f"{doc['passed']} of {len(records)} runs passed; wrote {out}/results.json and results.md")
     if doc["passed"] != len(records):
         raise SystemExit(1)

@@ -1,8 +1,11 @@
 """What bad input gets, by class (docs/reliability.md): a file or message that disagrees with its
 own header is refused, every input row the engine drops is counted, every output place is checked
 before any work, a killed ``msdnet-data pair`` leaves nothing behind for good, an option that does
-not apply is refused or noted, refresh refuses external data in one line, and every command's bad
-argument or bad input file ends in one line without a traceback. Bundled model, a few points."""
+not apply is refused or noted, refresh refuses external data in one line, a manifest whose encoder
+form disagrees with its graph is named, msdnet-node's parameters file is read within limits and
+its options that cannot work are refused at start, an unmatched writer is named once, a benchmark
+checks its arguments before measuring, and every command's bad argument or bad input file ends in
+one line without a traceback. Bundled model, a few points."""
 
 from __future__ import annotations
 
@@ -439,6 +442,102 @@ def _external_initializer(graph: Path) -> str:
         for t in onnx.load(str(graph), load_external_data=False).graph.initializer
         if t.data_location == onnx.TensorProto.EXTERNAL
     )
+
+
+# ---------------------------------------------------------------- model folders: encoder form
+
+
+def test_an_encoder_form_that_disagrees_with_its_graph_names_the_field(tmp_path: Path) -> None:
+    folder = tmp_path / "m"
+    shutil.copytree(BUNDLED_MODEL, folder)
+    manifest = json.loads((folder / "manifest.json").read_text())
+    (folder / "manifest.json").write_text(json.dumps({**manifest, "encoder_form": "pairs"}))
+    from msdnet.runtime.model.artifact import load_artifact
+
+    with pytest.raises(MsdnetError, match="encoder_form 'pairs' disagrees with encoder.onnx") as err:
+        load_artifact(folder)
+    assert str(err.value).startswith(f"{folder / 'manifest.json'}: ") and '"encoder_form": "rulebook"' in str(
+        err.value
+    )
+
+
+# ---------------------------------------------------------------- msdnet-node: parameters, options, writers
+
+NODE = [sys.executable, "-m", "msdnet.runtime.frontends.live.cli"]
+
+
+def test_a_parameters_file_that_is_not_one_is_refused_in_one_line(tmp_path: Path) -> None:
+    head = "msdnet_node:\n  ros__parameters:\n"
+    bomb = "a: &a [x,x,x,x,x,x,x,x,x]\n" + "".join(
+        f"{b}: &{b} [{','.join([f'*{a}'] * 9)}]\n" for a, b in zip("abcde", "bcdef", strict=True)
+    )
+    cases = {
+        "latin1.yaml": (head + "    target_frame: bâse\n").encode("latin-1"),
+        "gzip.yaml": __import__("gzip").compress(head.encode()),
+        "bomb.yaml": (bomb + head + "    fields: *f\n").encode(),
+        "range.yaml": (head + "    seed: -1\n").encode(),
+    }
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        r = subprocess.run(
+            NODE + ["--params-file", str(tmp_path / name)], capture_output=True, text=True, env=ENV
+        )
+        assert r.returncode == 2 and r.stderr.startswith(f"error: {tmp_path / name}: "), r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1 and len(r.stderr) < 300, r.stderr
+    assert "seed: must be >= 0" in r.stderr
+
+
+def test_node_options_that_cannot_work_are_refused_at_start() -> None:
+    pytest.importorskip("cyclonedds")
+    for args, says in (
+        (["--output-topic", "/radar/points"], "--output-topic: /radar/points is both the input topic"),
+        (["--input-type", "radar_scan", "--field", "rcs=foo"], "--field: a RadarScan has no field 'foo'"),
+    ):
+        r = subprocess.run(NODE + ["--provider", "cpu", *args], capture_output=True, text=True, env=ENV)
+        assert r.returncode == 2 and says in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+
+
+def test_a_writer_the_node_cannot_match_is_named_once() -> None:
+    pytest.importorskip("cyclonedds")
+    from types import SimpleNamespace
+
+    from msdnet.runtime.frontends.live.discovery import WriterWatch
+
+    said: list[str] = []
+    watch = WriterWatch.__new__(WriterWatch)
+    samples = [
+        SimpleNamespace(
+            sample_info=SimpleNamespace(instance_handle=h, valid_data=True),
+            topic_name="rt/radar/points",
+            type_name="sensor_msgs::msg::dds_::PointCloud2_",
+            qos=[],
+        )
+        for h in (1, 2)
+    ]
+    watch.builtin = SimpleNamespace(take=lambda N: samples)
+    watch.reader = SimpleNamespace(get_matched_publications=lambda: [])
+    watch.dds_topic, watch.ros_topic = "rt/radar/points", "/radar/points"
+    watch.dds_type, watch.reliable, watch.warn = "radar_msgs::msg::dds_::RadarScan_", False, said.append
+    watch.seen, watch.said, watch.count = {}, set(), 0
+    watch.poll()
+    watch.poll()
+    assert watch.count == 1 and len(said) == 1, said  # two writers of one wrong type: one line
+    assert "publishes sensor_msgs/msg/PointCloud2, this node reads radar_msgs/msg/RadarScan" in said[0]
+
+
+# ---------------------------------------------------------------- msdnet-bench: arguments before measuring
+
+
+def test_benchmarks_check_arguments_and_outputs_before_measuring(tmp_path: Path) -> None:
+    from msdnet.benchmarks.cli import main as bench
+
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    r = CliRunner().invoke(bench, ["params", "tiny", "--out", str(blocker)])
+    assert r.exit_code == 2 and f"{blocker}: exists and is not a folder" in r.output
+    assert "preset tiny" not in r.output  # refused before the table was computed
+    r = CliRunner().invoke(bench, ["encoders", "--preset", "huge", "--data", str(tmp_path)])
+    assert r.exit_code == 2 and "Invalid value for '--preset'" in r.output and "KeyError" not in r.output
 
 
 # ---------------------------------------------------------------- every command: one line, no traceback
