@@ -213,8 +213,18 @@ def run(values: dict[str, Any], origin: dict[str, str] | None = None) -> None:
         stats = state["stats"] = NodeStats()
         _start(values, origin or {}, state, life, stats, echo, warn)
     except MsdnetError as err:
-        life.end(EXIT_BAD_INPUT, err)
+        life.end(EXIT_BAD_INPUT, _renamed(err, origin or {}))
     life.end(0)
+
+
+def _renamed(err: MsdnetError, origin: dict[str, str]) -> MsdnetError:
+    """``err`` named after where its parameter came from (``--steps`` given in a parameters file is
+    ``node.yaml: steps``); an error naming no parameter as it is."""
+    by_flag = {p.flag: p.name for p in PARAMS} | {p.name: p.name for p in PARAMS}
+    name = by_flag.get(str(err.path))
+    if name is None or origin.get(name, str(err.path)) == str(err.path):
+        return err
+    return MsdnetError(origin[name], err.cause)
 
 
 def _start(
@@ -240,18 +250,13 @@ def _start(
         _foxglove()
     model = Path(values["model"]) if values["model"] else None
     trusted = Path(values["trusted_key"]) if values["trusted_key"] else None
-    flag_names = {"--threshold": "threshold", "--steps": "steps", "--model": "model"}
-    try:
-        artifact = check_model_options(
-            resolve_model(model),
-            trusted,
-            values["provider"],
-            values["threshold"] or None,
-            values["steps"] or None,
-        )
-    except MsdnetError as err:
-        name = flag_names.get(str(err.path), "provider" if "provider" in str(err.path) else None)
-        raise MsdnetError(origin.get(name, err.path) if name else err.path, err.cause) from None
+    artifact = check_model_options(
+        resolve_model(model),
+        trusted,
+        values["provider"],
+        values["threshold"] or None,
+        values["steps"] or None,
+    )
     cfg = config_from(values, artifact, origin)
     state["phase"] = "loading the model"  # with provider auto and no cached picks: measuring engines
     pipe = Pipeline(artifact, provider=values["provider"], threads=values["threads"] or None)

@@ -41,7 +41,10 @@ class FoxgloveView:
                 name="msdnet-node", host=host, port=port, context=self.context
             )
         except Exception as err:  # port in use, address not here
-            raise MsdnetError("--foxglove-port", f"cannot serve on {host}:{port}: {err}") from None
+            cause = " ".join(str(err).split())[:200]
+            host_fault = any(k in cause.lower() for k in ("lookup", "assign requested address"))
+            flag = "--foxglove-host" if host_fault else "--foxglove-port"  # else in use, not allowed
+            raise MsdnetError(flag, f"cannot serve on {host}:{port}: {cause}") from None
         self.radar = PointCloudChannel(radar_topic, context=self.context)
         self.dense = PointCloudChannel(dense_topic, context=self.context)
         self.port = int(self.server.port)
