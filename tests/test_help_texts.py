@@ -16,7 +16,7 @@ COMMANDS = {
     "msdnet-export": "msdnet.export.cli:main",
     "msdnet-infer": "msdnet.runtime.frontends.infer.cli:main",
     "msdnet-node": "msdnet.runtime.frontends.live.cli:main",
-    "msdnet-train": "msdnet.training.cli:main",
+    "msdnet-train": "msdnet.training.main:main",
 }
 SOURCE_PATH = re.compile(r"\b(?:runtime|benchmarks|training|export|frontends|tests)/\w|\b\w+\.py\b")
 LAB_WORDS = re.compile(r"DESIGN\.md|section \d|Tables? I{1,3}V?\b shape|MSDNet Table", re.IGNORECASE)
@@ -25,9 +25,9 @@ LAB_WORDS = re.compile(r"DESIGN\.md|section \d|Tables? I{1,3}V?\b shape|MSDNet T
 def _helps(name: str, cmd: click.Command, parent: click.Context | None = None) -> Iterator[tuple[str, str]]:
     ctx = click.Context(cmd, info_name=name, parent=parent)
     yield ctx.command_path, cmd.get_help(ctx)
-    if isinstance(cmd, click.Group):
-        for sub_name, sub in cmd.commands.items():
-            yield from _helps(sub_name, sub, ctx)
+    if isinstance(cmd, click.Group):  # a LazyGroup's sub-commands load here
+        for sub_name in cmd.list_commands(ctx):
+            yield from _helps(sub_name, cmd.get_command(ctx, sub_name), ctx)
 
 
 @pytest.mark.parametrize("tool", sorted(COMMANDS))

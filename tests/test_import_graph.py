@@ -12,7 +12,7 @@ Module-level, function-level and TYPE_CHECKING imports all count.
   Pipeline reads the artifact, the artifact reads the engine's grid and schedule) <- ``io`` <-
   ``metrics`` / ``sim`` <- ``frontends``; nothing imports a front-end but another front-end.
 - **training/** likewise: the configs (``published_config`` <- ``config``) <- ``data`` <- ``nn``
-  <- ``models`` <- ``recipe`` <- ``cli``.
+  <- ``models`` <- ``recipe`` <- ``cli`` <- ``main`` (the ``msdnet-train`` group).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ MAY_IMPORT = {
     "frontends": {"errors", "engine", "model", "io", "metrics", "sim"},
 }
 # training sub-package (or top-level module) -> the parts of training its modules may import
-_TRAINING_ORDER = ("published_config", "config", "data", "nn", "models", "recipe", "cli")
+_TRAINING_ORDER = ("published_config", "config", "data", "nn", "models", "recipe", "cli", "main")
 TRAINING_MAY_IMPORT = {part: set(_TRAINING_ORDER[:i]) for i, part in enumerate(_TRAINING_ORDER)}
 
 

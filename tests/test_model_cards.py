@@ -87,7 +87,7 @@ def test_sections_and_a_two_line_quick_start(name: str):
     (block,) = re.findall(r"```bash\n(.*?)```", quick, flags=re.DOTALL)
     first, second = block.strip().splitlines()  # two lines: install, then run
     assert first.startswith("pip install") and "msdnet-infer" in second
-    assert f"--model models/{name}" in second or name == "sim-lite"  # sim-lite is the default model
+    assert f"--model {name} " in second or name == "sim-lite"  # sim-lite is the default model
     assert "arXiv:" in text.split("## Citation", 1)[1]
 
 

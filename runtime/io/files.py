@@ -25,6 +25,9 @@ Known ``.bin`` layouts (``kind``):
 Astyx ``.txt`` files carry a header line (radar: a blank line first, then ``X Y Z V_r Mag``;
 LiDAR: ``X Y Z Reflectivity LaserID Timestamp``); names are taken from it. Values are kept as
 float32, so Astyx LiDAR ``timestamp`` (~3.7e8 us) is rounded to a multiple of 32 us.
+
+``.pcd`` and ``.ply`` need the ``formats`` extra (pypcd4, plyfile), imported when such a file is
+read or written; without it, that read or write is one ``MsdnetError`` naming the extra.
 """
 
 from __future__ import annotations
@@ -32,13 +35,12 @@ from __future__ import annotations
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import plyfile
-import pypcd4
 
 from msdnet.runtime.engine.pointcloud import PointCloud, canonical_column
-from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.errors import MsdnetError, import_extra
 from msdnet.runtime.io.atomic import atomic_output
 
 MAX_POINTS = 5_000_000  # rows per file; larger files are refused before allocating
@@ -247,7 +249,16 @@ def _read_npy(path: Path, size: int, kind: str | None, cols, max_points: int):
     return np.load(path, allow_pickle=False), names
 
 
+def _pcd() -> Any:
+    return import_extra("pypcd4", ".pcd files")
+
+
+def _ply() -> Any:
+    return import_extra("plyfile", ".ply files")
+
+
 def _read_pcd(path: Path, size: int, kind: str | None, cols, max_points: int):
+    pypcd4 = _pcd()
     with open(path, "rb") as f:
         lines: list[str] = []
         for raw in f:  # the header, as pypcd4 reads it, to check the count before the data
@@ -283,6 +294,7 @@ def _read_pcd(path: Path, size: int, kind: str | None, cols, max_points: int):
 
 
 def _read_ply(path: Path, size: int, kind: str | None, cols, max_points: int):
+    plyfile = _ply()
     with open(path, "rb") as f:
         header = plyfile.PlyData._parse_header(f)  # header only: element counts
         body_start = f.tell()
@@ -298,10 +310,11 @@ def _read_ply(path: Path, size: int, kind: str | None, cols, max_points: int):
     return np.stack(fields, axis=1).reshape(len(data), len(names)), names  # (N, C)
 
 
-def _ply_holds_no_more(path: Path, size: int, header: plyfile.PlyData, body_start: int) -> None:
+def _ply_holds_no_more(path: Path, size: int, header: Any, body_start: int) -> None:
     """Refuse a PLY whose body holds more or fewer vertices than its header states (plyfile
     reads the stated count and ignores the rest): text, by non-blank lines; binary, by bytes
     (fixed-size properties only)."""
+    plyfile = _ply()
     elements, count = header.elements, header["vertex"].count
     others = [e for e in elements if e.name != "vertex"]
     if header.text:
@@ -329,19 +342,20 @@ def write_cloud(path: str | Path, cloud: PointCloud, fmt: str | None = None) -> 
     if kind not in WRITE_FORMATS:
         raise MsdnetError(target, f"cannot write format {kind!r} (write: {WRITE_FORMATS})")
     pts = np.ascontiguousarray(cloud.points, dtype="<f4")  # (N, C)
+    lib = {"pcd": _pcd, "ply": _ply}.get(kind, lambda: None)()  # before the temporary file
     with atomic_output(target) as tmp, open(tmp, "wb") as f:
         if kind == "bin":
             pts.tofile(f)
         elif kind == "npy":
             np.save(f, pts, allow_pickle=False)
         elif kind == "pcd":
-            pc = pypcd4.PointCloud.from_points(pts, cloud.columns, [np.float32] * len(cloud.columns))
+            pc = lib.PointCloud.from_points(pts, cloud.columns, [np.float32] * len(cloud.columns))
             pc.save(f)
         else:
             rows = np.empty(len(pts), dtype=[(c, "<f4") for c in cloud.columns])
             for i, c in enumerate(cloud.columns):
                 rows[c] = pts[:, i]
-            plyfile.PlyData([plyfile.PlyElement.describe(rows, "vertex")], text=False).write(f)
+            lib.PlyData([lib.PlyElement.describe(rows, "vertex")], text=False).write(f)
     return target
 
 

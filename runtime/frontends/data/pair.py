@@ -6,7 +6,7 @@ from pathlib import Path
 
 import click
 
-from msdnet.runtime.errors import MsdnetError, one_line_errors
+from msdnet.runtime.errors import MsdnetError, one_line_errors, require_extra
 from msdnet.runtime.io.atomic import checks_outputs
 
 
@@ -36,6 +36,8 @@ def pair(
     odom_topic: str | None,
 ) -> None:
     """Pair a bag's radar and LiDAR scans by stamp into a VoD-layout training folder."""
+    for package in ("rosbags", "scipy"):  # bags, and poses between stamps
+        require_extra(package, "msdnet-data pair", "ros")
     from msdnet.runtime.io.pairing.pair import PairOptions, pair_bag
     from msdnet.runtime.io.pairing.transforms import parse_extrinsic
 

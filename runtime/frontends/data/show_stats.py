@@ -1,4 +1,7 @@
-"""``msdnet-data show`` (a BEV picture of one preprocessed frame) and ``msdnet-data stats``."""
+"""``msdnet-data show`` (a BEV picture of one preprocessed frame) and ``msdnet-data stats``.
+
+``show`` draws with the ``pictures`` extra and removes the LiDAR's ground with the ``metrics``
+extra, both imported when it runs, so ``--help`` needs neither."""
 
 from __future__ import annotations
 
@@ -7,12 +10,10 @@ import numpy as np
 from tqdm import tqdm
 
 from msdnet.runtime.engine.grid import GRID_PRESETS
-from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.errors import one_line_errors, require_extra
 from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES, open_dataset
-from msdnet.runtime.io.datasets.preprocess import lidar_ground, preprocess_frame
 from msdnet.runtime.io.datasets.stats import TARGETS, compute_stats, format_stats
-from msdnet.runtime.io.pictures import RADAR_COLOUR, Layer, render_bev
 
 DATASET_CHOICE = click.Choice(DATASET_NAMES)
 PRESET_CHOICE = click.Choice(sorted(GRID_PRESETS))
@@ -38,6 +39,12 @@ def show(
     keep_ground: bool,
 ) -> None:
     """Draw one preprocessed frame from above: radar over LiDAR, grid range outlined."""
+    require_extra("matplotlib", "msdnet-data show")
+    if not keep_ground:
+        require_extra("pypatchworkpp", "ground removal (--keep-ground skips it)")
+    from msdnet.runtime.io.datasets.preprocess import lidar_ground, preprocess_frame
+    from msdnet.runtime.io.pictures import RADAR_COLOUR, Layer, render_bev
+
     grid = GRID_PRESETS[preset]
     frame = open_dataset(dataset, data, radar_frames=radar_frames).get(frame_id)
     cropped = preprocess_frame(frame, grid, remove_ground=False)

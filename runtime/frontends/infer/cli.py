@@ -65,7 +65,13 @@ from msdnet.runtime.frontends.infer.files import (
     run_files,
     summary,
 )
-from msdnet.runtime.frontends.infer.guards import check_out, clamp_workers, prepare_out, usable_cores
+from msdnet.runtime.frontends.infer.guards import (
+    check_extras,
+    check_out,
+    clamp_workers,
+    prepare_out,
+    usable_cores,
+)
 from msdnet.runtime.frontends.infer.option_use import check_option_use
 from msdnet.runtime.frontends.infer.scans import check_scan_columns
 from msdnet.runtime.frontends.model_args import BUNDLED_MODEL, check_model_options, resolve_model
@@ -189,6 +195,7 @@ def main(
     artifact = check_model_options(model_dir, trusted_key, provider, threshold, steps)
     columns, _ = resolve_bin_columns(layout, bin_columns, artifact.manifest)  # file mode .bin
     mode = "topic" if topic is not None else "dataset" if dataset is not None else "files"
+    check_extras(png, dataset is not None, fmt)
     check_option_use(click.get_current_context(), inputs, mode, provider, lambda s: click.echo(s, err=True))
     options = DensifyOptions(  # the one set of options every mode (and every worker) runs with
         steps=steps,
@@ -245,6 +252,7 @@ def main(
     if split is not None or max_frames is not None:
         raise MsdnetError("--split/--frames", "only apply with --dataset")
     files = collect_inputs(inputs)
+    check_extras(False, False, fmt, files)
     check_scan_columns(files, columns, model_dir, artifact.inputs.columns, BUNDLED_MODEL.parent)
     targets = output_paths(files, out, fmt)
     prepare_out(out)  # writable, and a killed run's temporary files removed

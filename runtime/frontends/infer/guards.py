@@ -6,6 +6,8 @@
   system or missing permission is one line naming the folder, before any work), and remove the
   temporary files a killed run left there (``io.atomic.clean_stale_temps``).
 - ``clamp_workers``: no more worker processes than CPU cores (with a warning) or files.
+- ``check_extras``: the extras the options and inputs need (``--png``: pictures, ``--dataset``:
+  metrics, ``.pcd``/``.ply``: formats), each missing one a line before any work.
 - ``watch_parent``: a worker process exits as soon as its parent is gone (a SIGKILLed
   ``msdnet-infer`` leaves no worker running).
 
@@ -23,10 +25,25 @@ from pathlib import Path
 
 import click
 
-from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.errors import MsdnetError, require_extra
 from msdnet.runtime.io.atomic import check_writable, write_error
 
 PARENT_POLL_S = 0.2  # how often a worker checks that its parent is alive
+
+
+def check_extras(png: bool, dataset: bool, fmt: str, files: Sequence[Path] = ()) -> None:
+    """One ``MsdnetError`` naming the extra to install when an option or input needs a package that
+    a runtime-only install leaves out; nothing is imported."""
+    if png:
+        require_extra("matplotlib", "--png")
+    if dataset:
+        require_extra("scipy", "--dataset (scores against the LiDAR)")
+        require_extra("pypatchworkpp", "--dataset (ground removal)")
+    libs = {"pcd": "pypcd4", "ply": "plyfile"}
+    if fmt in libs:
+        require_extra(libs[fmt], f"--format {fmt}")
+    for suffix in sorted({f.suffix.lower().lstrip(".") for f in files} & set(libs)):
+        require_extra(libs[suffix], f".{suffix} inputs")
 
 
 def check_out(out: Path, inputs: Sequence[Path]) -> None:

@@ -12,7 +12,8 @@ Ground removal runs on the LiDAR points in the LiDAR's OWN frame (moved back wit
    (``GroundConfig.sensor_height`` overrides it) — Patchwork++'s defaults are KITTI's 1.723 m.
 2. Patchwork++ (``pypatchworkpp``) with that height classifies the points, with bin sizes
    per LiDAR rig (``GROUND_PRESETS[frame.lidar_rig]``). Reflected-noise removal is off
-   (intensity scales differ between rigs).
+   (intensity scales differ between rigs). It comes with the ``metrics`` extra, imported on
+   first use.
 3. Fallback, documented and tested: if Patchwork++ raises, returns an inconsistent split or
    finds no ground at all, the plane from step 1 decides (``|distance| < plane_threshold``).
 """
@@ -25,9 +26,9 @@ import sys
 from dataclasses import dataclass, replace
 
 import numpy as np
-import pypatchworkpp
 
 from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.errors import import_extra
 from msdnet.runtime.io.datasets.frame import Frame
 
 KITTI_SENSOR_HEIGHT = 1.723  # m, Patchwork++'s default; used only when nothing better is known
@@ -152,7 +153,9 @@ def _quiet_stdout():
 
 
 def _patchwork(xyz: np.ndarray, height: float, cfg: GroundConfig) -> np.ndarray | None:
-    """(N,) bool ground mask from Patchwork++, None when it fails."""
+    """(N,) bool ground mask from Patchwork++, None when it fails (a missing ``metrics`` extra is
+    an error, not a failure: the fallback is for a binding that runs and fails)."""
+    pypatchworkpp = import_extra("pypatchworkpp", "ground removal")
     params = pypatchworkpp.Parameters()
     params.verbose = False
     params.sensor_height = float(height)
