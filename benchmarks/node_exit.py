@@ -8,7 +8,8 @@ process, as on a vehicle's first start. The ``--runs`` runs send the signal at d
 evenly from ``--first-s`` to ``--last-s`` after the start (the model loading, the engines'
 measurement, the warm-up, joining DDS, and serving with no scan); the ``--load-runs`` runs wait
 for the ready line, start a publisher of synthetic scans at ``--hz`` and send the signal
-``--load-s`` later, scans in flight. Every participant uses the loopback-only Cyclone configuration.
+``--load-s`` after the node's first scan, scans in flight. Every participant uses the
+loopback-only Cyclone configuration.
 
 A run passes when the node exits with status 0 within ``EXIT_LIMIT_S`` of the signal, its last
 stdout line is the stats line, the ``--stats-json`` file is whole JSON and stderr holds no
@@ -66,7 +67,8 @@ class _Lines:
 
     def __init__(self, stream: Any) -> None:
         self.lines: list[tuple[float, str]] = []
-        self.ready = threading.Event()
+        self.ready = threading.Event()  # the node serves
+        self.flowing = threading.Event()  # it has handled a scan (a stats line after the ready line)
         self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True)
         self._thread.start()
 
@@ -75,6 +77,8 @@ class _Lines:
             self.lines.append((time.monotonic(), line.rstrip("\n")))
             if "msdnet-node: serving" in line:
                 self.ready.set()
+            elif self.ready.is_set() and line.startswith("msdnet-node: received"):
+                self.flowing.set()
 
     def join(self) -> None:
         self._thread.join(timeout=5.0)
@@ -101,6 +105,7 @@ def start_and_stop(
     domain = DOMAIN_BASE + index if domain is None else domain
     cmd = [sys.executable, "-m", "msdnet.runtime.frontends.live.cli", "--domain-id", str(domain)]
     cmd += ["--stats-json", str(stats_path)] + ([] if model is None else ["--model", str(model)])
+    cmd += [] if load_hz is None else ["--stats-every", "1"]  # a line per scan: the scans flow
     publisher = None
     start = time.monotonic()
     err_path = folder / "stderr.txt"
@@ -115,6 +120,7 @@ def start_and_stop(
         pub = [sys.executable, "-m", "msdnet.runtime.frontends.live.publish", *map(str, files)]
         pub += ["--domain-id", str(domain), "--hz", f"{load_hz:g}", "--count", str(int(load_hz * 600))]
         publisher = subprocess.Popen(pub, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        lines.flowing.wait(timeout=120.0)  # the publisher's start-up is not the node's load
         time.sleep(delay_s)
     sent = time.monotonic()
     proc.send_signal(signum)
@@ -138,7 +144,7 @@ def start_and_stop(
         "run": index,
         "signal": signal.Signals(signum).name,
         "delay_s": round(delay_s, 3),
-        "after": "the ready line" if load_hz is not None else "the start",
+        "after": "the first scan" if load_hz is not None else "the start",
         "state": "?" if stats is None else stats.get("stopped_while", "?"),
         "scans_in_flight": load_hz is not None,
         "measured_engines": "provider auto: measured" in err,

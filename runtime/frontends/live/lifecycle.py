@@ -24,7 +24,7 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from msdnet.runtime.errors import EXIT_BAD_INPUT, MsdnetError
 
@@ -47,11 +47,15 @@ class Lifecycle:
         """Block SIGINT / SIGTERM in this (main) thread, and so in every thread started after it;
         start the thread that takes them. Call before anything starts a thread (importing numpy
         starts its BLAS pool). A thread that existed before still has them unblocked: for it, a
-        handler takes the signal the same way, from the main thread."""
+        handler passes the signal on the same way, through a thread of its own (the main thread,
+        where Python runs handlers, may hold a lock the ending takes)."""
         signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
         for signum in SIGNALS:
-            signal.signal(signum, lambda s, _frame: self._on_signal(s))
+            signal.signal(signum, self._handler)
         threading.Thread(target=self._take_signals, name="msdnet-node-signals", daemon=True).start()
+
+    def _handler(self, signum: int, _frame: Any) -> None:
+        threading.Thread(target=self._on_signal, args=(signum,), daemon=True).start()
 
     def _take_signals(self) -> None:
         while True:
