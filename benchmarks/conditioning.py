@@ -45,8 +45,8 @@ def conditioning_report(
     classifier-free guidance ``guidance`` (default: the checkpoint's config, 1 = off)."""
     import torch
 
-    from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.errors import MsdnetError
+    from msdnet.runtime.spec.ddim import alphas_cumprod, step_coefficients
     from msdnet.training.nn.denoiser import ddim_loop
     from msdnet.training.recipe.checkpoint import load_checkpoint
 

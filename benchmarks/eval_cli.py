@@ -17,10 +17,10 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 
 if TYPE_CHECKING:
     from msdnet.benchmarks.eval_methods import Method

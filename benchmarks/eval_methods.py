@@ -25,10 +25,10 @@ from typing import Any
 import numpy as np
 
 from msdnet.runtime.engine.decode import decode_occupancy
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model.artifact import MANIFEST
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 
 # model kind -> name in the tables, and the role of its row
 KIND_LABELS = {"student": "MSDNet", "r2ldm": "R2LDM", "teacher": "Teacher (LiDAR in)"}

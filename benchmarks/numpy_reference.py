@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.voxelize import Voxels
+from msdnet.runtime.spec.grid import GridConfig
 
 
 def voxelize_numpy(points: np.ndarray, grid: GridConfig, max_voxels: int) -> Voxels:

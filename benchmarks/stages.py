@@ -95,11 +95,11 @@ def stage_report(
     """The figures above for a student checkpoint, as a JSON-ready dict."""
     import torch
 
-    from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
     from msdnet.runtime.engine.decode import decode_occupancy
     from msdnet.runtime.errors import MsdnetError
     from msdnet.runtime.metrics.cloud import score_frame
     from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
+    from msdnet.runtime.spec.ddim import alphas_cumprod, step_coefficients
     from msdnet.training.nn.adapter import NoiseAdapter
     from msdnet.training.recipe.checkpoint import load_checkpoint
 

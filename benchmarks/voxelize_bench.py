@@ -27,11 +27,11 @@ from msdnet.benchmarks.numpy_reference import (
     voxelize_numpy,
 )
 from msdnet.runtime.engine.decode import decode_occupancy
-from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.engine.kernels import warmup
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.engine.voxelize import voxelize
 from msdnet.runtime.errors import one_line_errors
+from msdnet.runtime.spec.grid import GRID_PRESETS
 
 POINT_COUNTS = (300, 1000, 20000, 100000)  # points per cloud timed by voxelize
 RADAR_POINTS = 300  # clouds up to this size are radar-like, larger ones LiDAR-like

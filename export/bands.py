@@ -28,13 +28,13 @@ from tqdm import tqdm
 from msdnet.export.keep import at_least_as_good, slice_ids, table_row
 from msdnet.export.manifest_fields import update_manifest
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.range_threshold import RangeThresholds
 from msdnet.runtime.errors import MsdnetError, one_line_errors
 from msdnet.runtime.io.datasets import FrameDataset, open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 from msdnet.runtime.metrics.cloud import scene_scores
 from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
 from msdnet.runtime.model.artifact import MANIFEST
+from msdnet.runtime.spec.range_threshold import RangeThresholds
 
 EDGES = (10.0, 20.0)  # band edges, metres of horizontal range (the object table's bands)
 CANDIDATES = ((0.25, 0.3, 0.35, 0.4), (0.35, 0.4, 0.45), (0.4, 0.45, 0.5, 0.55))  # per band

@@ -23,10 +23,10 @@ import onnx
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.engine.ddim import step_coefficients
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.onnx_spec import GraphSpec
+from msdnet.runtime.spec.ddim import step_coefficients
 from msdnet.training.config import ModelConfig
 from msdnet.training.data.batch import EncoderInput, make_encoder_input
 from msdnet.training.models.assembly import bev_shape

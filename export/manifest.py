@@ -30,11 +30,11 @@ from typing import Any
 import onnx
 import onnxruntime
 
-from msdnet.runtime.engine.cosine_logsnr import SamplerSettings
-from msdnet.runtime.engine.ddim import DiffusionConfig, alphas_cumprod
 from msdnet.runtime.io.layouts import layout_for_columns
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import GRAPHS_BY_KIND, MANIFEST, file_digest
+from msdnet.runtime.spec.cosine_logsnr import SamplerSettings
+from msdnet.runtime.spec.ddim import DiffusionConfig, alphas_cumprod
 from msdnet.training.config import ModelConfig
 from msdnet.training.models.assembly import bev_shape
 from msdnet.training.recipe.checkpoint import versions as checkpoint_versions
@@ -52,7 +52,7 @@ def runtime_diffusion(cfg: ModelConfig, kind: str) -> DiffusionConfig:
 
 def published_sampler(cfg: ModelConfig, kind: str) -> dict[str, Any] | None:
     """The ``sampler`` block of R2LDM as published (its resampled cosine log-SNR DDIM loop,
-    runtime/engine/cosine_logsnr.py); None for every other model."""
+    runtime/spec/cosine_logsnr.py); None for every other model."""
     if kind != "r2ldm" or cfg.r2ldm_recipe != "published":
         return None
     p = cfg.published

@@ -54,7 +54,7 @@ def _agree(old_dir: Path, new_dir: Path) -> tuple[float, int]:
     """(largest relative output difference, decoded points) of the two folders on the old
     model's own inputs; MsdnetError when a graph or the decoded points disagree."""
     from msdnet.runtime.engine.pipeline import Pipeline
-    from msdnet.runtime.engine.provider_measure import disagreement, graph_inputs, seeded_scan
+    from msdnet.runtime.providers.provider_measure import disagreement, graph_inputs, seeded_scan
 
     old, new = Pipeline.from_dir(old_dir, threads=1), Pipeline.from_dir(new_dir, threads=1)
     worst = 0.0

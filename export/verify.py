@@ -25,9 +25,9 @@ from torch import nn
 
 from msdnet.export.graphs import encoder_tensors, graph_modules
 from msdnet.runtime.engine.decode import decode_occupancy
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.spec.grid import GridConfig
 from msdnet.training.config import ModelConfig
 from msdnet.training.data.batch import make_encoder_input
 

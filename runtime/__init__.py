@@ -3,16 +3,17 @@
 Python API::
 
     from msdnet.runtime import Pipeline
-    pipe = Pipeline.from_dir("path/to/exported-model")  # msdnet-export output
+    pipe = Pipeline.from_dir("astyx-lite")  # a shipped model's name, or an msdnet-export folder
     result = pipe(points)  # (N, C) float32 in the manifest's columns, or a PointCloud
     result.points, result.confidence, result.timings
 
-Sub-packages: ``engine`` (voxelizer, rulebooks, sessions, DDIM schedule, decode, the Pipeline),
-``model`` (the exported artifact: manifest, ONNX specs and checks, signing), ``io`` (files,
-layouts, datasets, bags, Rerun, pictures, bag pairing), ``sim`` (the simulator) and
-``frontends`` (``msdnet-infer``, ``msdnet-node``, ``msdnet-data``); ``errors`` holds
-``MsdnetError``. Each imports only those before it (engine and model together form the core),
-which tests/test_import_graph.py checks.
+Sub-packages, each importing only those before it (tests/test_import_graph.py checks): ``errors``
+(``MsdnetError``, the extras), ``spec`` (grid, diffusion schedules, range thresholds), ``model``
+(the exported artifact: manifest, ONNX specs and checks, shipped models by name, signing),
+``providers`` (engine choice and sessions), ``engine`` (voxelizer, rulebooks, decode, the
+Pipeline): together the core; then ``io`` (files, layouts, datasets, bags, Rerun, pictures, bag
+pairing), ``metrics`` and ``sim`` (the simulator), and ``frontends`` (``msdnet-infer``,
+``msdnet-node``, ``msdnet-data``).
 
 The public names below are imported on first use (PEP 562), so ``import msdnet.runtime`` stays
 cheap for modules that only need the grid or the schedule. Importing it turns the telemetry of

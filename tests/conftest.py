@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from msdnet.runtime.engine import provider_measure as _provider_measure
+from msdnet.runtime.providers import provider_measure as _provider_measure
 
 REAL_STREAM_SCANS = _provider_measure.STREAM_SCANS  # before the session fixture lowers it
 
@@ -64,7 +64,7 @@ def session_auto_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pat
     """``--provider auto`` (the command-line default) in every test and every process a test starts:
     one cache for the session, never the user's, so each test model is measured once; in this
     process on ``TEST_STREAM_SCANS`` scans (the ``auto_cache`` fixture restores the real stream)."""
-    from msdnet.runtime.engine import provider_measure
+    from msdnet.runtime.providers import provider_measure
 
     before = os.environ.get("XDG_CACHE_HOME")
     os.environ["XDG_CACHE_HOME"] = str(tmp_path_factory.mktemp("xdg-session"))
@@ -81,7 +81,7 @@ def session_auto_cache(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Pat
 def auto_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """``--provider auto``'s cache file, fresh under XDG_CACHE_HOME, no picks kept in memory, and
     the real stream of scans."""
-    from msdnet.runtime.engine import provider_cache, provider_measure
+    from msdnet.runtime.providers import provider_cache, provider_measure
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     monkeypatch.setattr(provider_cache, "_MEMO", {})

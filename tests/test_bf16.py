@@ -11,11 +11,11 @@ from export_helpers import make_artifact
 
 from msdnet.benchmarks.latency.peers import _table
 from msdnet.export.verify import _voxel_keys
-from msdnet.runtime.engine import provider_cache, provider_measure, session
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import load_artifact
+from msdnet.runtime.providers import provider_cache, provider_measure, session
 
 pytest.importorskip("openvino")
 HAS_BF16 = session.openvino_has_bf16()

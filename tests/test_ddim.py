@@ -1,11 +1,11 @@
-"""The DDIM schedule (runtime/engine/ddim.py) against hand-computed values and a numpy DDIM reference."""
+"""The DDIM schedule (runtime/spec/ddim.py) against hand-computed values and a numpy DDIM reference."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from msdnet.runtime.engine import ddim
+from msdnet.runtime.spec import ddim
 
 CFG = ddim.DiffusionConfig()
 

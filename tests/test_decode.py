@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from msdnet.benchmarks.numpy_reference import decode_numpy
 from msdnet.runtime.engine.decode import decode_occupancy, decode_packed, unpack_children, warmup
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 
 TINY = GRID_PRESETS["tiny"]  # (D, H, W) = (10, 32, 32)
 

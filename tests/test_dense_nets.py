@@ -13,8 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from msdnet.runtime.engine import ddim
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.spec import ddim
 from msdnet.training.config import MODEL_PRESETS, ModelConfig
 from msdnet.training.nn import (
     RGFD,
@@ -49,7 +49,7 @@ def bev(cfg: ModelConfig, batch: int = 2, seed: int = 0) -> torch.Tensor:
 
 
 def ddim_update_reference(x_t, eps, abar_t, abar_prev):
-    """Numpy float64 reference of one deterministic DDIM step (runtime/engine/ddim.py step 5)."""
+    """Numpy float64 reference of one deterministic DDIM step (runtime/spec/ddim.py step 5)."""
     x_t, eps = x_t.astype(np.float64), eps.astype(np.float64)
     x0 = (x_t - np.sqrt(1.0 - abar_t) * eps) / np.sqrt(abar_t)
     return np.sqrt(abar_prev) * x0 + np.sqrt(1.0 - abar_prev) * eps

@@ -130,7 +130,7 @@ def test_onnx_pair_graph_equals_the_rulebook_graph_at_any_thread_count(setup):
 
 def test_openvino_runs_the_pair_graph(setup):
     pytest.importorskip("openvino")
-    from msdnet.runtime.engine.openvino_session import OpenVinoSession
+    from msdnet.runtime.providers.openvino_session import OpenVinoSession
 
     _, folder, frames = setup
     ov = OpenVinoSession((folder / "pairs.onnx").read_bytes(), threads=2)

@@ -11,10 +11,10 @@ from click.testing import CliRunner
 from export_helpers import make_artifact, make_exported_checkpoint, one_torch_thread
 
 from msdnet.benchmarks.eval_cli import odometry_command, place_command, quality_command
-from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.metrics.cloud import score_frame
 from msdnet.runtime.metrics.crop import xy_range
 from msdnet.runtime.sim.command import simulate_dataset
+from msdnet.runtime.spec.grid import GRID_PRESETS
 
 ASTYX_ARGS = ["--dataset", "astyx", "--split", "val", "--max-frames", "3", "--threads", "1"]
 

@@ -16,10 +16,10 @@ from onnx import TensorProto, helper, numpy_helper
 
 from msdnet.export import verify
 from msdnet.export.cli import main
-from msdnet.runtime.engine.ddim import alphas_cumprod
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import file_digest, load_artifact
 from msdnet.runtime.model.onnx_check import SUBSET, external_tensors
+from msdnet.runtime.spec.ddim import alphas_cumprod
 from msdnet.training.models.assembly import build_model
 
 

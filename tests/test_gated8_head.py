@@ -10,7 +10,7 @@ import pytest
 import torch
 from export_helpers import one_torch_thread, tiny_config
 
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 from msdnet.training.models.assembly import bev_shape
 from msdnet.training.nn.head_gated import FixedGroupNorm
 from msdnet.training.nn.head_gated8 import Gated8ReconHead, near_occupancy

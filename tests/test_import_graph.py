@@ -8,9 +8,10 @@ Module-level, function-level and TYPE_CHECKING imports all count.
   the runtime, and training / export only in the modules of ``TORCH_SIDE``, where a comparison
   needs the torch models or the exporter; ``models`` (the shipped models, data) imports nothing
   and any root may import it to find them.
-- **runtime/** keeps its sub-packages in order: ``errors`` <- the core (``engine``, ``model``: the
-  Pipeline reads the artifact, the artifact reads the engine's grid and schedule) <- ``io`` <-
-  ``metrics`` / ``sim`` <- ``frontends``; nothing imports a front-end but another front-end.
+- **runtime/** keeps its sub-packages in order: the core (``errors`` <- ``spec``: the grid, schedules
+  and range thresholds <- ``model``: the artifact <- ``providers``: engine choice and sessions <-
+  ``engine``: the Pipeline) <- ``io`` <- ``metrics`` / ``sim`` <- ``frontends``; nothing imports a
+  front-end but another front-end.
 - **training/** likewise: the configs (``published_config`` <- ``config``) <- ``data`` <- ``nn``
   <- ``models`` <- ``recipe`` <- ``cli`` <- ``main`` (the ``msdnet-train`` group).
 """
@@ -46,15 +47,14 @@ TORCH_SIDE = {
     "msdnet.benchmarks.training_speed_worker": "trains the torch models to time their steps",
 }
 # runtime sub-package -> the sub-packages its modules may import (besides its own)
+_CORE = ("errors", "spec", "model", "providers", "engine")  # each imports only those before it
 MAY_IMPORT = {
-    "errors": set(),
     "offline": set(),  # the engines' telemetry off (runtime/__init__.py applies it first)
-    "engine": {"errors", "model"},
-    "model": {"errors", "engine"},
-    "io": {"errors", "engine", "model"},
-    "metrics": {"errors", "engine", "io"},
-    "sim": {"errors", "engine", "model", "io"},
-    "frontends": {"errors", "engine", "model", "io", "metrics", "sim"},
+    **{part: set(_CORE[:i]) for i, part in enumerate(_CORE)},
+    "io": {"errors", "spec", "engine", "model"},
+    "metrics": {"errors", "spec", "engine", "io"},
+    "sim": {"errors", "spec", "engine", "model", "io"},
+    "frontends": {"errors", "spec", "engine", "model", "providers", "io", "metrics", "sim"},
 }
 # training sub-package (or top-level module) -> the parts of training its modules may import
 _TRAINING_ORDER = ("published_config", "config", "data", "nn", "models", "recipe", "cli", "main")

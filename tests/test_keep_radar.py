@@ -17,9 +17,9 @@ from msdnet.runtime.engine.decode import (
     radar_confidence_sparse,
     unpack_children,
 )
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.voxelize import in_range_mask
 from msdnet.runtime.model.artifact import load_artifact
+from msdnet.runtime.spec.grid import GridConfig
 
 
 def reference_confidence(points: np.ndarray, dense: np.ndarray, grid: GridConfig) -> np.ndarray:

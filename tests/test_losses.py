@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.spec.grid import GridConfig
 from msdnet.training.config import LossWeights
 from msdnet.training.data.targets import scale_shapes, voxel_targets
 from msdnet.training.models.losses import (

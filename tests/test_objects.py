@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 
 from msdnet.benchmarks.quality import objects as ob
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io.datasets import AstyxDataset
 from msdnet.runtime.io.datasets.astyx_boxes import Boxes, quat_to_matrix, read_astyx_boxes
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 from msdnet.runtime.metrics.cloud import chamfer_distance
 from msdnet.runtime.metrics.crop import crop_to_grid
+from msdnet.runtime.spec.grid import GridConfig
 
 GRID = GridConfig((0.0, -16.0, -2.0, 32.0, 16.0, 4.0), (0.2, 0.2, 0.3))  # the lite grid, FOV 60 deg
 YAW90 = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]  # w, x, y, z: 90 deg about z

@@ -9,11 +9,11 @@ import pytest
 from export_helpers import make_artifact
 
 from msdnet.export.verify import E2E_DIFF_TOL, GraphCheck, compare_points
-from msdnet.runtime.engine.openvino_session import OpenVinoSession
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.session import OPENVINO_GRAPHS, available_providers, resolve_providers
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.providers.openvino_session import OpenVinoSession
+from msdnet.runtime.providers.session import OPENVINO_GRAPHS, available_providers, resolve_providers
 
 pytest.importorskip("openvino")
 

@@ -6,10 +6,10 @@ import numpy as np
 import pypatchworkpp
 import pytest
 
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.io.datasets import AstyxDataset, Frame, VodDataset, preprocess
 from msdnet.runtime.io.datasets.preprocess import GroundConfig, crop_mask, ground_mask, preprocess_frame
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 
 PAPER = GRID_PRESETS["paper"]
 HEIGHT = 1.8  # synthetic LiDAR height above the road, m

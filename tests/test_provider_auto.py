@@ -12,12 +12,12 @@ from click.testing import CliRunner
 from export_helpers import make_artifact
 
 from msdnet.export.verify import E2E_DIFF_TOL, GRAPH_COS_TOL, GRAPH_REL_TOL, compare_points
-from msdnet.runtime.engine import provider_cache, provider_measure
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.io.files import write_cloud
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import load_artifact
+from msdnet.runtime.providers import provider_cache, provider_measure
 
 pytest.importorskip("openvino")
 ON_OV = (onnx_spec.ENCODER.file, onnx_spec.DENOISER_STEP.file, onnx_spec.RECON_HEAD.file)
@@ -347,7 +347,7 @@ def test_a_bad_head_entry_is_measured_again(tmp_path_factory, cache):
     import shutil
 
     from msdnet.export.manifest import write_manifest
-    from msdnet.runtime.engine import provider_head
+    from msdnet.runtime.providers import provider_head
 
     gated = tmp_path_factory.mktemp("gated") / "m"
     shutil.copytree(make_artifact(tmp_path_factory.mktemp("a"), "student", head_kind="gated"), gated)

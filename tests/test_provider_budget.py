@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from export_helpers import make_artifact
 
-from msdnet.runtime.engine import provider_auto, provider_budget, provider_cache, provider_measure
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.providers import provider_auto, provider_budget, provider_cache, provider_measure
 
 pytest.importorskip("openvino")
 HEAD = onnx_spec.RECON_HEAD.file
@@ -45,7 +45,7 @@ class _Slow:
 
 def _slow_openvino(monkeypatch: pytest.MonkeyPatch, delay: float) -> None:
     """Every OpenVINO call of this test sleeps ``delay`` first."""
-    from msdnet.runtime.engine import openvino_session
+    from msdnet.runtime.providers import openvino_session
 
     for name in ("run", "run_with_iobinding"):
         real = getattr(openvino_session.OpenVinoSession, name)
@@ -128,7 +128,7 @@ def test_a_slow_graph_is_left_for_a_later_load(folder, auto_cache, monkeypatch):
     """The dense head's calls take 0.3 s on both engines and the budget is gone: its pick waits for
     a later load (onnxruntime meanwhile, not cached, said in the one line); the other graphs are
     measured and cached, and the next load measures only the head."""
-    from msdnet.runtime.engine import openvino_session
+    from msdnet.runtime.providers import openvino_session
 
     pipe = Pipeline.from_dir(folder, "cpu", threads=1)
     own, graph = pipe.sessions[HEAD], pipe.artifact.graphs[HEAD]

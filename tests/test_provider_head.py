@@ -11,8 +11,8 @@ import pytest
 from export_helpers import make_artifact
 
 from msdnet.export.manifest import write_manifest
-from msdnet.runtime.engine import provider_cache, provider_head, provider_measure
 from msdnet.runtime.engine.pipeline import Pipeline
+from msdnet.runtime.providers import provider_cache, provider_head, provider_measure
 
 pytest.importorskip("openvino")
 

@@ -34,12 +34,12 @@ from msdnet.benchmarks.quality.suite import (
     pick_frames,
     summarize,
 )
-from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import crop_mask, preprocess_frame
 from msdnet.runtime.metrics.cloud import FrameScores, score_frame
 from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
+from msdnet.runtime.spec.grid import GRID_PRESETS
 
 TINY = GRID_PRESETS["tiny"]
 SETTINGS = RunSettings(threads=1)

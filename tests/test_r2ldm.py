@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from msdnet.runtime.engine import ddim
+from msdnet.runtime.spec import ddim
 from msdnet.training.config import MODEL_PRESETS, R2LDM_LR
 from msdnet.training.models.assembly import R2LDMModel
 from msdnet.training.models.losses import eps_loss

@@ -10,7 +10,7 @@ import pytest
 import torch
 from export_helpers import one_torch_thread, tiny_config
 
-from msdnet.runtime.engine import cosine_logsnr as cs
+from msdnet.runtime.spec import cosine_logsnr as cs
 from msdnet.training.published_config import with_recipe
 
 # torch vs onnxruntime tolerances of the published sampler on the tiny preset

@@ -1,4 +1,4 @@
-"""Decoding thresholds by range band: the bands (``engine.range_threshold``), the Pipeline decoding
+"""Decoding thresholds by range band: the bands (``spec.range_threshold``), the Pipeline decoding
 with them (equal to decoding each band at its own threshold), the manifest field, the fast scene
 scorer and the choice on the selection slice (``export.bands``)."""
 
@@ -12,9 +12,9 @@ import pytest
 from export_helpers import copy_artifact, make_artifact
 
 from msdnet.runtime import MsdnetError, Pipeline
-from msdnet.runtime.engine.range_threshold import RangeThresholds, range_thresholds_from
 from msdnet.runtime.metrics.cloud import scene_scores, score_frame
 from msdnet.runtime.model.artifact import load_artifact
+from msdnet.runtime.spec.range_threshold import RangeThresholds, range_thresholds_from
 
 
 def test_bands_of_points():
@@ -146,7 +146,7 @@ def test_kernels_decode_each_band_at_its_threshold():
     """decode_packed / decode_sparse with bands give exactly the points of a decode at the lowest
     threshold filtered by ``RangeThresholds.keep`` (same order), and without bands what they gave."""
     from msdnet.runtime.engine.decode import decode_packed, decode_sparse, packed_shape
-    from msdnet.runtime.engine.grid import GridConfig
+    from msdnet.runtime.spec.grid import GridConfig
 
     grid = GridConfig((0.0, -3.2, -0.6, 6.4, 3.2, 0.6), (0.2, 0.2, 0.3))  # (D, H, W) = (4, 32, 32)
     rng = np.random.default_rng(1)

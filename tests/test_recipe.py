@@ -11,7 +11,7 @@ import pytest
 import torch
 from export_helpers import one_torch_thread, tiny_config
 
-from msdnet.runtime.engine.grid import GRID_PRESETS
+from msdnet.runtime.spec.grid import GRID_PRESETS
 from msdnet.training.config import AugmentConfig
 from msdnet.training.data.augment import augment_pair
 from msdnet.training.data.batch import collate

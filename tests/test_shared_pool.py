@@ -9,7 +9,7 @@ import textwrap
 
 from export_helpers import make_artifact
 
-from msdnet.runtime.engine.session import SHARED, available_providers, device_of, resolve_providers
+from msdnet.runtime.providers.session import SHARED, available_providers, device_of, resolve_providers
 
 SCRIPT = textwrap.dedent(
     """

@@ -14,10 +14,10 @@ from export_helpers import make_artifact, one_torch_thread, tiny_config
 from msdnet.export.gate import calibrate_gate, keep_all_gate
 from msdnet.export.manifest import write_manifest
 from msdnet.runtime.engine.decode import decode_packed, decode_sparse, packed_shape
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model.artifact import load_artifact
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 from msdnet.training.models.assembly import bev_shape
 from msdnet.training.nn.head import ReconHead
 from msdnet.training.nn.head_gated import FixedGroupNorm, GatedReconHead

@@ -9,11 +9,11 @@ import pytest
 from click.testing import CliRunner
 from matplotlib.image import imread
 
-from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.frontends.data.show_stats import show, stats
 from msdnet.runtime.io.datasets import VodDataset
 from msdnet.runtime.io.datasets.stats import REALISM_TARGETS, compute_stats, format_stats
 from msdnet.runtime.io.pictures import Layer, render_bev
+from msdnet.runtime.spec.grid import GRID_PRESETS
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 RADAR_RGB = (0xD6 / 255, 0x27 / 255, 0x28 / 255)  # the radar colour of ``show``

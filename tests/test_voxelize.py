@@ -11,9 +11,9 @@ from hypothesis import strategies as st
 from msdnet.benchmarks.cli import main
 from msdnet.benchmarks.numpy_reference import voxelize_numpy
 from msdnet.benchmarks.voxelize_bench import format_table, run_voxelize_bench
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.engine.kernels import warmup
 from msdnet.runtime.engine.voxelize import Voxels, voxelize
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 
 TINY = GRID_PRESETS["tiny"]  # 32 x 32 x 10, range [0, 12.8] x [-6.4, 6.4] x [-2, 4]
 

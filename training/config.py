@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
-from msdnet.runtime.engine.ddim import DiffusionConfig
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
+from msdnet.runtime.spec.ddim import DiffusionConfig
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 from msdnet.training.published_config import PublishedR2LDMConfig
 
 

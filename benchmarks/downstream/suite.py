@@ -33,12 +33,12 @@ from msdnet.benchmarks.downstream.odometry import (
 from msdnet.benchmarks.downstream.place import ScanContextConfig, recall_at_k
 from msdnet.benchmarks.eval_methods import Method
 from msdnet.benchmarks.quality.suite import grid_dict
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io.datasets import FrameDataset
 from msdnet.runtime.io.datasets.frame import read_json
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 from msdnet.runtime.metrics.crop import crop_to_grid
+from msdnet.runtime.spec.grid import GridConfig
 
 SEQUENCES_FILE = "sequences.json"
 LIDAR_NAME = "LiDAR"  # the reference cloud, always evaluated

@@ -130,7 +130,7 @@ def latency_command(
     """Time per stage and per frame, against peer engines, T_m and input size; writes
     results.json, results.md and plots."""
     from msdnet.benchmarks.latency.suite import LatencyConfig, quick_config, run_latency
-    from msdnet.runtime.engine.session import resolve_providers
+    from msdnet.runtime.providers.session import resolve_providers
 
     resolve_providers(provider)
     given = {

@@ -20,7 +20,7 @@ class LatencyConfig:
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
     up_sampling: str | None = None  # random models: head export form (training.nn.head.Up2x) [the exporter's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config
-    provider: str = "cpu"  # provider short name (runtime.engine.session: cpu, auto, openvino, cuda, tensorrt)
+    provider: str = "cpu"  # short name (runtime.providers.session: cpu, auto, openvino, cuda, tensorrt)
     threads: int = os.cpu_count() or 1  # onnxruntime intra-op threads = torch threads
     repeats: int = 30  # timed MSDNet calls (sweeps use max(2, repeats // 5))
     warmup: int = 3  # untimed calls before timing

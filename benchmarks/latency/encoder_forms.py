@@ -91,13 +91,13 @@ def compare(
 
     from msdnet.export.encoder_pairs import pairs_encoder_model
     from msdnet.export.graphs import example_inputs, export_graph, make_encoder_input, tracing_points
-    from msdnet.runtime.engine.openvino_session import OpenVinoSession
     from msdnet.runtime.engine.pairs import pair_feeds
     from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
-    from msdnet.runtime.engine.session import create_session
     from msdnet.runtime.engine.voxelize import voxelize
     from msdnet.runtime.io.datasets import open_dataset
     from msdnet.runtime.model import onnx_spec
+    from msdnet.runtime.providers.openvino_session import OpenVinoSession
+    from msdnet.runtime.providers.session import create_session
 
     enc, cfg = _encoder(preset, model)
     with tempfile.TemporaryDirectory(prefix="msdnet-encoder-forms-") as tmp:

@@ -11,7 +11,7 @@ Engines:
   graph, precision and settings, so that peer's calls are ours too (``ours_is``): timed twice, the
   one running second would find the kernels the first prepared for each new input shape;
 - ``openvino``: the same ONNX bytes compiled for the CPU as ``--provider openvino`` does
-  (``runtime.engine.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
+  (``runtime.providers.openvino_session``: ``threads`` inference threads, f32; the optional ``[openvino]``
   extra); a graph it cannot load (``rgfd_adapter.onnx``: no DeformConv in its ONNX front end) is
   reported with the reason;
 - ``openvino_bf16``: the same compiled in bfloat16 (``--provider openvino-bf16``), on CPUs whose
@@ -49,8 +49,8 @@ from msdnet.benchmarks.latency.head import coarse_to_fine_gate
 from msdnet.benchmarks.latency.peer_report import OTHER_HEAD  # the head graph ours does not run
 from msdnet.benchmarks.latency.timing import Scan
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.provider_measure import failure_reason, fresh_sessions, scan_calls
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.providers.provider_measure import failure_reason, fresh_sessions, scan_calls
 
 ENGINES = ("onnxruntime", "openvino", "openvino_bf16", "torch_eager", "torch_compile")
 REDUCED_PRECISION = ("openvino_bf16",)  # peers that do not compute in f32
@@ -119,8 +119,8 @@ def _onnxruntime(pipe: Pipeline, spec: onnx_spec.GraphSpec) -> Runner:
 
 
 def _openvino(pipe: Pipeline, spec: onnx_spec.GraphSpec, threads: int, precision: str = "f32") -> Runner:
-    from msdnet.runtime.engine.openvino_session import OpenVinoSession
-    from msdnet.runtime.engine.session import openvino_has_bf16
+    from msdnet.runtime.providers.openvino_session import OpenVinoSession
+    from msdnet.runtime.providers.session import openvino_has_bf16
 
     if precision == "bf16" and not openvino_has_bf16():
         raise RuntimeError("OpenVINO has no bfloat16 on this CPU (no BF16 capability)")
@@ -147,7 +147,7 @@ def _torch(module: torch.nn.Module, spec: onnx_spec.GraphSpec) -> Runner:
 def _same_peer(sess: Any) -> str | None:
     """The peer engine that ``sess`` (one of the pipeline's sessions) is: ``openvino`` or
     ``openvino_bf16`` for an OpenVINO session, None for onnxruntime's."""
-    precision = getattr(sess, "precision", None)  # runtime.engine.openvino_session.OpenVinoSession
+    precision = getattr(sess, "precision", None)  # runtime.providers.openvino_session.OpenVinoSession
     return None if precision is None else {"f32": "openvino", "bf16": "openvino_bf16"}[precision]
 
 

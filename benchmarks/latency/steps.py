@@ -215,7 +215,7 @@ def run_steps(
 @checks_outputs(out="into")  # before any work
 def steps_command(steps_text: str, **opts: Any) -> None:
     """CD, MHD, F-scores, JSD and ms per frame against the DDIM steps T_m on a dataset split."""
-    from msdnet.runtime.engine.session import resolve_providers
+    from msdnet.runtime.providers.session import resolve_providers
 
     resolve_providers(opts["provider"])
     steps = cast(tuple[int, ...], int_tuple("--steps", steps_text, 1))

@@ -63,8 +63,8 @@ from msdnet.benchmarks.latency.timing import (
 from msdnet.benchmarks.latency.useful import efficiency, stage_flops
 from msdnet.benchmarks.machine import machine_info
 from msdnet.runtime.engine.pipeline import Pipeline
-from msdnet.runtime.engine.session import SHARED
 from msdnet.runtime.errors import MsdnetError
+from msdnet.runtime.providers.session import SHARED
 
 TABLE3_STEPS = (3, 10, 50, 100)  # MSDNet Table III
 GRAPH_STAGES = ("encoder", "rgfd_adapter", "ddim_loop", "recon_head")  # what torch eager also runs

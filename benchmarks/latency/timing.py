@@ -23,14 +23,14 @@ import torch
 
 from msdnet.benchmarks.numpy_reference import down_rulebook_numpy, subm_rulebook_numpy, voxelize_numpy
 from msdnet.runtime.engine.decode import unpack_children
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.kernels import warmup as numba_warmup
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
-from msdnet.runtime.engine.session import device_of
 from msdnet.runtime.engine.voxelize import voxelize
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.providers.session import device_of
+from msdnet.runtime.spec.grid import GridConfig
 from msdnet.training.data.batch import make_encoder_input
 
 Scan = np.ndarray | PointCloud  # (N, C) float32 in the model's columns, or a named cloud

@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 
 from msdnet.benchmarks.flops import NodeFlops, node_flops
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.voxelize import voxelize
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.spec.grid import GridConfig
 
 STAGE_GRAPHS = {  # latency stage -> the graph whose FLOPs it needs (the loop: the step graph, per call)
     "encoder": onnx_spec.ENCODER.file,

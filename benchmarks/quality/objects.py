@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.io.datasets.astyx_boxes import Boxes
 from msdnet.runtime.io.datasets.preprocess import crop_mask
 from msdnet.runtime.metrics.cloud import chamfer_distance
+from msdnet.runtime.spec.grid import GridConfig
 
 GROW = 0.25  # metres added to every face of a box
 MIN_LIDAR_POINTS = 10  # reference points in the grown box for an object to count as seen

@@ -18,9 +18,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from msdnet.benchmarks.quality.columns import FSCORE_KEYS
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.io.pictures import COUNTS_KEY, draw_grid
+from msdnet.runtime.spec.grid import GridConfig
 
 # MSDNet paper, Table I (VoD) as printed: CD (unit not stated), MHD (printed x1e-2, here in m),
 # F-score (threshold not stated), JSD, MMD (printed x1e-4, here as is).

@@ -38,7 +38,6 @@ from msdnet.benchmarks.quality.objects import (
     summarize_objects,
 )
 from msdnet.benchmarks.quality.official import official_markdown, official_section
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pointcloud import PointCloud
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.io.atomic import atomic_output
@@ -48,6 +47,7 @@ from msdnet.runtime.io.files import write_cloud
 from msdnet.runtime.metrics.cloud import FSCORE_THRESHOLDS, FrameScores, score_frame
 from msdnet.runtime.metrics.crop import crop_to_grid, xy_range
 from msdnet.runtime.metrics.official import OfficialFrames
+from msdnet.runtime.spec.grid import GridConfig
 
 # summary metrics, in table order: name -> whether lower is better
 METRICS: dict[str, bool] = {

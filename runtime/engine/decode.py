@@ -26,9 +26,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from msdnet.runtime.engine.grid import GridConfig
-from msdnet.runtime.engine.range_threshold import RangeThresholds
 from msdnet.runtime.engine.voxelize import grid_arrays
+from msdnet.runtime.spec.grid import GridConfig
+from msdnet.runtime.spec.range_threshold import RangeThresholds
 
 
 @njit(cache=True, inline="always")
@@ -174,7 +174,7 @@ def decode_packed(
     bands: RangeThresholds | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``decode_occupancy`` on the packed head output, without unpacking it. With ``bands`` each
-    voxel's threshold is that of its point's band of range (``engine.range_threshold``; the same
+    voxel's threshold is that of its point's band of range (``spec.range_threshold``; the same
     points as decoding at the lowest and keeping ``bands.keep``'s), ``threshold`` unused.
 
     occupancy: (8, D2, H2, W2) float32; offsets: (8, 3, D2, H2, W2) float32 [dx, dy, dz] metres;

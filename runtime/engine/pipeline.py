@@ -10,14 +10,14 @@ Stages (``Result.timings`` keys, seconds):
 4. ``adapter``: MSDNet: ``rgfd_adapter.onnx`` (F^S, eps) -> x_m. R2LDM: x_T = eps (pure noise).
    eps ~ N(0, I) comes from ``numpy.random.default_rng(seed)``, so a seed fixes the output.
 5. ``denoise``: the DDIM loop, any step count chosen per call; each step runs the step graph
-   with the coefficients of ``runtime.engine.ddim.step_coefficients`` (the update is inside the graph).
+   with the coefficients of ``runtime.spec.ddim.step_coefficients`` (the update is inside the graph).
 6. ``head``: ``recon_head.onnx`` -> occupancy (1, 8, D2, H2, W2), offsets (1, 8, 3, D2, H2, W2),
    full scale packed per half-scale voxel (``onnx_spec.RECON_HEAD``); or, when ``Pipeline.gate``
    is set (default: the manifest's calibrated ``gate``), the coarse-to-fine
    ``recon_head_sparse.onnx``: the full scale only under the half-scale voxels whose occupancy
    passes the gate (``onnx_spec.RECON_HEAD_SPARSE``), decoded by ``decode_sparse``.
 7. ``decode``: threshold -> voxel centre + offset (numba), in linear voxel order; with range
-   thresholds (manifest ``range_thresholds``, ``engine.range_threshold``) and no threshold given,
+   thresholds (manifest ``range_thresholds``, ``spec.range_threshold``) and no threshold given,
    each voxel at the threshold of its point's band of range; with
    ``keep_radar`` the input radar points inside the grid box are appended (confidence 1).
    With a keep threshold (manifest ``keep_radar_threshold``, ``Pipeline.keep_threshold``) each
@@ -48,8 +48,6 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import onnxruntime as ort
 
-from msdnet.runtime.engine.cosine_logsnr import SamplerSettings, sampler_settings
-from msdnet.runtime.engine.ddim import step_coefficients
 from msdnet.runtime.engine.decode import (
     decode_packed,
     decode_sparse,
@@ -60,16 +58,18 @@ from msdnet.runtime.engine.decode import (
 from msdnet.runtime.engine.kernels import warmup as numba_warmup
 from msdnet.runtime.engine.pairs import pair_feeds
 from msdnet.runtime.engine.pointcloud import PointCloud
-from msdnet.runtime.engine.range_threshold import RangeThresholds
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
-from msdnet.runtime.engine.session import AUTO, base_provider, create_session, device_of, precision_of
 from msdnet.runtime.engine.voxelize import in_range_mask, voxelize
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.artifact import Artifact, load_artifact
+from msdnet.runtime.providers.session import AUTO, base_provider, create_session, device_of, precision_of
+from msdnet.runtime.spec.cosine_logsnr import SamplerSettings, sampler_settings
+from msdnet.runtime.spec.ddim import step_coefficients
+from msdnet.runtime.spec.range_threshold import RangeThresholds
 
 if TYPE_CHECKING:
-    from msdnet.runtime.engine.provider_auto import AutoReport
+    from msdnet.runtime.providers.provider_auto import AutoReport
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,8 +157,8 @@ class Pipeline:
             self.sessions[spec.file] = sess
         student = self.kind == "student"
         self._step_spec = onnx_spec.DENOISER_STEP if student else onnx_spec.R2LDM_STEP
-        # R2LDM as published: the resampled cosine log-SNR loop (runtime/engine/cosine_logsnr.py); None:
-        # the linear-schedule DDIM loop of runtime/engine/ddim.py
+        # R2LDM as published: the resampled cosine log-SNR loop (runtime/spec/cosine_logsnr.py); None:
+        # the linear-schedule DDIM loop of runtime/spec/ddim.py
         block = artifact.manifest.get("sampler")
         self.sampler: SamplerSettings | None = None if block is None else sampler_settings(block)
         self._enc_spec = next(s for s in artifact.specs if s.file == onnx_spec.ENCODER.file)
@@ -167,7 +167,7 @@ class Pipeline:
         self._allocate(device_of(provider))
         self.auto: AutoReport | None = None  # provider "auto": each graph's engine, its times and why
         if base_provider(provider) == AUTO:
-            from msdnet.runtime.engine.provider_auto import choose_engines
+            from msdnet.runtime.providers.provider_auto import choose_engines
 
             self.auto = choose_engines(self, threads_of, precision_of(provider))  # may swap in OpenVINO's
             self._allocate(device_of(provider))  # so bind the buffers again

@@ -37,9 +37,9 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.voxelize import bit_length, radix_sort
 from msdnet.runtime.model.onnx_spec import NUM_DOWN
+from msdnet.runtime.spec.grid import GridConfig
 
 KERNEL_TAPS = 27  # 3 x 3 x 3 taps: the width of every rules table
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from msdnet.runtime.engine.grid import GridConfig
+from msdnet.runtime.spec.grid import GridConfig
 
 RADIX_BITS = 12  # most bits per LSD radix pass: a 4096-bucket int32 histogram stays in L1
 

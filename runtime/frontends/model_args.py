@@ -36,9 +36,9 @@ def check_model_options(
 ) -> Any:
     """Load the artifact (hashes, signature) and check ``--provider``, ``--threshold`` and
     ``--steps`` against it; -> the ``Artifact``. Each problem is one ``MsdnetError`` line."""
-    from msdnet.runtime.engine.ddim import timesteps
-    from msdnet.runtime.engine.session import resolve_providers
     from msdnet.runtime.model.artifact import load_artifact
+    from msdnet.runtime.providers.session import resolve_providers
+    from msdnet.runtime.spec.ddim import timesteps
 
     artifact = load_artifact(model_dir, trusted_key)  # refuse a bad model before any input
     resolve_providers(provider)

@@ -26,9 +26,9 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.io.datasets.preprocess import crop_mask
+from msdnet.runtime.spec.grid import GridConfig
 
 COUNTS_KEY = "msdnet-counts"  # PNG text chunk: the legend's counts as JSON {label: count}
 STYLES = ("voxels", "dots", "radar")

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.io.datasets.preprocess import crop_mask
+from msdnet.runtime.spec.grid import GridConfig
 
 
 def crop_to_grid(points: np.ndarray, grid: GridConfig) -> np.ndarray:

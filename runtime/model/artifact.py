@@ -25,14 +25,14 @@ from typing import Any
 
 import numpy as np
 
-from msdnet.runtime.engine.cosine_logsnr import sampler_settings
-from msdnet.runtime.engine.ddim import DiffusionConfig, alphas_cumprod, timesteps
-from msdnet.runtime.engine.grid import GridConfig
-from msdnet.runtime.engine.range_threshold import RangeThresholds, range_thresholds_from
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
 from msdnet.runtime.model.onnx_check import external_tensors, graph_inputs
 from msdnet.runtime.model.shipped import find_model, shipped_names
+from msdnet.runtime.spec.cosine_logsnr import sampler_settings
+from msdnet.runtime.spec.ddim import DiffusionConfig, alphas_cumprod, timesteps
+from msdnet.runtime.spec.grid import GridConfig
+from msdnet.runtime.spec.range_threshold import RangeThresholds, range_thresholds_from
 
 MANIFEST = "manifest.json"
 MAX_MANIFEST_BYTES = 16 * 1024 * 1024  # a manifest is a few hundred kB at most
@@ -83,7 +83,7 @@ class Artifact:
     # (manifest ``keep_radar_threshold``; ``decode.radar_confidence_*``); None: keep none
     keep_threshold: float | None = None
     # one decoding threshold per band of horizontal range (manifest ``range_thresholds``,
-    # ``engine.range_threshold``); None: ``threshold`` everywhere
+    # ``spec.range_threshold``); None: ``threshold`` everywhere
     range_thresholds: RangeThresholds | None = None
 
 
@@ -242,7 +242,7 @@ def load_artifact(root: str | Path, trusted_key: str | Path | None = None) -> Ar
     kind = _need(manifest, "model_kind", where, str)
     if kind not in GRAPHS_BY_KIND:
         raise MsdnetError(where, f"model kind {kind!r} is not one of {sorted(GRAPHS_BY_KIND)}")
-    sampler = manifest.get("sampler")  # R2LDM as published: its own loop (runtime/engine/cosine_logsnr.py)
+    sampler = manifest.get("sampler")  # R2LDM as published: its own loop (runtime/spec/cosine_logsnr.py)
     if sampler is not None:
         try:
             sampler_settings(sampler)

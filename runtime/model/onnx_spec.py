@@ -69,7 +69,7 @@ R2LDM_STEP = GraphSpec(  # x_t, cond (1, C, H, W), t/abar_t/abar_prev (1,) -> x_
 )
 R2LDM_GRAPHS = (ENCODER, R2LDM_STEP, RECON_HEAD)
 
-# R2LDM as published (manifest ``sampler.name`` = runtime.engine.cosine_logsnr.SAMPLER_NAME): the encoder
+# R2LDM as published (manifest ``sampler.name`` = runtime.spec.cosine_logsnr.SAMPLER_NAME): the encoder
 # stops at level 2 (latent at 1/4 of the grid, bev_coords (V_2, 4)); the step's ``t`` is the
 # log-SNR; the runtime's loop re-noises between repeated steps; recon_head.onnx is the LPCR decoder.
 ENCODER_QUARTER = _encoder_spec(2)

@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.io.datasets.preprocess import crop_mask
+from msdnet.runtime.spec.grid import GridConfig
 from msdnet.training.config import AugmentConfig
 
 

@@ -21,10 +21,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.rulebook import batch_coords, build_encoder_rulebooks
 from msdnet.runtime.engine.voxelize import voxelize
 from msdnet.runtime.model.onnx_spec import NUM_DOWN
+from msdnet.runtime.spec.grid import GridConfig
 from msdnet.training.config import ModelConfig
 from msdnet.training.data.targets import make_targets
 

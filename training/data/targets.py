@@ -18,9 +18,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.rulebook import level_shapes
 from msdnet.runtime.engine.voxelize import voxelize
+from msdnet.runtime.spec.grid import GridConfig
 
 SCALE_FACTORS = (4, 2, 1)  # voxel size multiple of scales 1/4, 1/2, 1, in head output order
 

@@ -17,7 +17,7 @@ metres [dx, dy, dz])`` at full scale.
 The student and R2LDM hold the trained teacher as a frozen submodule (``requires_grad=False``,
 always in eval mode), so their checkpoints carry it and ``parameters()`` with
 ``requires_grad`` lists only their own weights. The diffusion schedule comes from
-``msdnet.runtime.engine.ddim`` (alphas_cumprod, step_coefficients); nothing is recomputed here.
+``msdnet.runtime.spec.ddim`` (alphas_cumprod, step_coefficients); nothing is recomputed here.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call
 
-from msdnet.runtime.engine.ddim import alphas_cumprod, step_coefficients
+from msdnet.runtime.spec.ddim import alphas_cumprod, step_coefficients
 from msdnet.training.config import ModelConfig
 from msdnet.training.data.batch import Batch, EncoderInput
 from msdnet.training.models.latent import LatentHead, norm_tensors

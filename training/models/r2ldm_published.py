@@ -15,7 +15,7 @@ Read from the public code (github.com/NathanDrake67/R2LDM: ``scn.py``, ``rpn.py`
 - **Stage 2** (:class:`PublishedR2LDM`, trained as ``r2ldm``): the stage-1 model frozen; the radar
   latent is the condition, concatenated at the U-Net input only (``training/nn/unet_published.py``).
   eps-prediction on the LiDAR latent with t ~ U(0, 1), the cosine log-SNR schedule and min-SNR-5
-  weights (``runtime/engine/cosine_logsnr.py``).
+  weights (``runtime/spec/cosine_logsnr.py``).
 - **Sampling**: DDIM eta = 0 with x0 clipped to +-1, each step re-noised and repeated (RePaint
   style); :meth:`PublishedR2LDM.predict` is the torch reference of the runtime's loop.
 """
@@ -26,8 +26,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.engine.cosine_logsnr import sampler_plan
 from msdnet.runtime.engine.rulebook import level_shapes
+from msdnet.runtime.spec.cosine_logsnr import sampler_plan
 from msdnet.training.config import ModelConfig
 from msdnet.training.data.batch import Batch, EncoderInput
 from msdnet.training.models.losses import occupancy_bce
@@ -170,7 +170,7 @@ class LPCRAutoencoder(nn.Module):
 
 class PublishedStep(nn.Module):
     """``r2ldm_step.onnx`` of the published recipe: (x_t, cond, lambda_t, abar_t, abar_s) -> x_s,
-    DDIM eta = 0 with the x0 clip (``runtime/engine/cosine_logsnr.py`` step 4)."""
+    DDIM eta = 0 with the x0 clip (``runtime/spec/cosine_logsnr.py`` step 4)."""
 
     def __init__(self, unet: PublishedUNet, x0_clip: float) -> None:
         super().__init__()
@@ -182,7 +182,7 @@ class PublishedStep(nn.Module):
 
 
 def log_snr_torch(t: Tensor, lo: float, hi: float) -> Tensor:
-    """``runtime.engine.cosine_logsnr.log_snr`` in torch: t (B,) in [0, 1] -> lambda (B,)."""
+    """``runtime.spec.cosine_logsnr.log_snr`` in torch: t (B,) in [0, 1] -> lambda (B,)."""
     t_min = float(np.arctan(np.exp(-0.5 * hi)))
     t_max = float(np.arctan(np.exp(-0.5 * lo)))
     return -2.0 * torch.log(torch.tan(t_min + t * (t_max - t_min)).clamp_min(1e-20))

@@ -20,7 +20,7 @@ import math
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.engine.ddim import alphas_cumprod
+from msdnet.runtime.spec.ddim import alphas_cumprod
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.blocks import Bottleneck2d, TimeEmbedding
 

@@ -1,6 +1,6 @@
 """Light diffusion denoiser (MSDNet Sec. III-D, Fig. 3) and the one DDIM update of the project.
 
-The DDIM (eta = 0) update is written once, in :func:`ddim_update` (runtime/engine/ddim.py docstring,
+The DDIM (eta = 0) update is written once, in :func:`ddim_update` (runtime/spec/ddim.py docstring,
 step 5). Training calls it through :class:`DenoiserStep` / :func:`ddim_loop` (gradients flow), the
 exporter folds it into ``denoiser_step.onnx``, and the runtime only feeds ``step_coefficients``.
 """
@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from msdnet.runtime.engine.ddim import alphas_cumprod
+from msdnet.runtime.spec.ddim import alphas_cumprod
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.blocks import Bottleneck2d, TimeEmbedding, group_norm
 
@@ -70,7 +70,7 @@ class DenoiserStep(nn.Module):
     """One DDIM step with the denoiser inside: what ``denoiser_step.onnx`` computes.
 
     forward(x_t (B, C, H, W), t (1,), abar_t (1,), abar_prev (1,)) -> x_prev (B, C, H, W);
-    t, abar_t, abar_prev are one row of ``runtime.engine.ddim.step_coefficients`` (float32).
+    t, abar_t, abar_prev are one row of ``runtime.spec.ddim.step_coefficients`` (float32).
     """
 
     def __init__(self, denoiser: nn.Module) -> None:
@@ -92,7 +92,7 @@ def ddim_loop(
     step: a :class:`DenoiserStep`, or an ``R2LDMStep`` when ``cond`` (B, C, H, W) is given (called
     as ``step(x, cond, t, abar_t, abar_prev)``), or one such callable per row of ``coeffs`` (the
     student's training loop, training/nn/grad_balance.py); x: (B, C, H, W) start sample; coeffs: (T_m, 3)
-    float32 ``[t, abar_t, abar_prev]`` rows from ``runtime.engine.ddim.step_coefficients``.
+    float32 ``[t, abar_t, abar_prev]`` rows from ``runtime.spec.ddim.step_coefficients``.
     Returns x after the last step, (B, C, H, W).
     """
     rows = torch.as_tensor(coeffs).to(device=x.device, dtype=torch.float32)  # (T_m, 3)

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from msdnet.runtime.engine.ddim import alphas_cumprod
+from msdnet.runtime.spec.ddim import alphas_cumprod
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.blocks import TimeEmbedding, group_norm
 

@@ -59,7 +59,7 @@ def loop_features(
 ) -> list[Tensor]:
     """Normalised F^D (1, C, H8, W8) of each cloud after ``steps`` DDIM steps (default: the
     config's), eps from ``default_rng([seed, i])``."""
-    from msdnet.runtime.engine.ddim import step_coefficients
+    from msdnet.runtime.spec.ddim import step_coefficients
 
     cfg = model.cfg
     coeffs = step_coefficients(cfg.diffusion, sample_steps=steps or cfg.diffusion.sample_steps)

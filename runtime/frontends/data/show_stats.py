@@ -9,11 +9,11 @@ import click
 import numpy as np
 from tqdm import tqdm
 
-from msdnet.runtime.engine.grid import GRID_PRESETS
 from msdnet.runtime.errors import one_line_errors, require_extra
 from msdnet.runtime.io.atomic import checks_outputs
 from msdnet.runtime.io.datasets import DATASET_NAMES, open_dataset
 from msdnet.runtime.io.datasets.stats import TARGETS, compute_stats, format_stats
+from msdnet.runtime.spec.grid import GRID_PRESETS
 
 DATASET_CHOICE = click.Choice(DATASET_NAMES)
 PRESET_CHOICE = click.Choice(sorted(GRID_PRESETS))

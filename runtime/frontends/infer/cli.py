@@ -26,15 +26,15 @@ N workers gets cores // N); tests/test_faults.py checks --threads 1/2 and --work
 ``--trusted-key PUB`` refuses a model whose ``manifest.sig`` is missing or not by that key
 (``runtime/model/signing``).
 
-``--provider auto``, the default (``runtime/engine/provider_auto``), runs each graph on whichever
+``--provider auto``, the default (``runtime/providers/provider_auto``), runs each graph on whichever
 installed f32 engine, onnxruntime or OpenVINO, measured faster here: measured by the first run (a
 few seconds, said in one line on stderr), then cached per model, CPU and library versions; ``-v``
 prints the picks, times and cache notes. Without OpenVINO it is ``cpu``. Its outputs are within
-the export tolerances of ``cpu``'s, except
-where the manifest has a gate and the dense head is the faster head here (``runtime/engine/provider_head``):
-auto then runs the dense head, the reference the gated head approximates, and decodes the few points
-the gate drops too. ``--provider auto-bf16`` lets OpenVINO compute in bfloat16 (CPUs with bf16
-units): not within those tolerances; on the Astyx selection slice it changed CD, MHD and F@0.5 by
+the export tolerances of ``cpu``'s, except where the manifest has a gate and the dense head is
+the faster head here (``runtime/providers/provider_head``): auto then runs the dense head, the
+reference the gated head approximates, and decodes the few points the gate drops too.
+``--provider auto-bf16`` lets OpenVINO compute in bfloat16 (CPUs with bf16 units): not within
+those tolerances; on the Astyx selection slice it changed CD, MHD and F@0.5 by
 under 0.6 % (docs/latency.md).
 
 ``--dataset vod|astyx|sim|sim-astyx`` reads one dataset folder instead (``frontends/infer/dataset``): each

@@ -27,7 +27,6 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.engine.pipeline import Pipeline
 from msdnet.runtime.engine.pointcloud import DROP_REASONS
 from msdnet.runtime.errors import MsdnetError
@@ -36,6 +35,7 @@ from msdnet.runtime.io.atomic import atomic_output
 from msdnet.runtime.io.datasets import open_dataset
 from msdnet.runtime.io.datasets.preprocess import preprocess_frame
 from msdnet.runtime.io.files import DENSE_COLUMNS, write_dense
+from msdnet.runtime.spec.grid import GridConfig
 
 OUT_COLUMNS = DENSE_COLUMNS  # columns of every written cloud
 FSCORE_AT = 0.5  # metres: the F-score threshold quoted in the summary

@@ -27,9 +27,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from msdnet.runtime.engine.grid import GridConfig
 from msdnet.runtime.errors import import_extra
 from msdnet.runtime.io.datasets.frame import Frame
+from msdnet.runtime.spec.grid import GridConfig
 
 KITTI_SENSOR_HEIGHT = 1.723  # m, Patchwork++'s default; used only when nothing better is known
 

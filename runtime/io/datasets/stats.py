@@ -23,9 +23,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from msdnet.runtime.engine.grid import GRID_PRESETS, GridConfig
 from msdnet.runtime.io.datasets.frame import Frame
 from msdnet.runtime.io.datasets.preprocess import crop_mask
+from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 
 MOVING_SPEED = 0.5  # m/s: |v_r_compensated| above this counts as moving
 FOV_AZ_DEG = 60.0  # degrees, half azimuth of the region ``lidar_in_fov`` counts

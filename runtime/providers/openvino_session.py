@@ -1,6 +1,6 @@
 """An OpenVINO-backed graph with the slice of onnxruntime's session API the Pipeline uses.
 
-``--provider openvino`` (``runtime.engine.session.create_session``) runs every graph OpenVINO can load
+``--provider openvino`` (``runtime.providers.session.create_session``) runs every graph OpenVINO can load
 through :class:`OpenVinoSession`; the others (``rgfd_adapter.onnx``: no DeformConv in OpenVINO's
 ONNX front end) stay on onnxruntime's CPU provider. The Pipeline binds its buffers as OrtValues
 either way: :class:`OvBinding` reads bound inputs from them and writes outputs into them, so the

@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import onnxruntime as ort
 
-from msdnet.runtime.engine import provider_agree
-from msdnet.runtime.engine import provider_budget as budget
 from msdnet.runtime.errors import MsdnetError
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.providers import provider_agree
+from msdnet.runtime.providers import provider_budget as budget
 
 # a runtime.engine.pipeline.Pipeline; not imported, because the pipeline imports provider_auto
 Pipeline = Any
@@ -143,7 +143,7 @@ def warm_voxelizer(pipe: Pipeline) -> threading.Thread:
 def fresh_sessions(pipe: Pipeline, threads: int | None, files: list[str] | None = None) -> dict[str, Any]:
     """onnxruntime CPU sessions of the pipeline's graphs (``files``; None: all) that its own
     sessions do not share (what runs on them leaves the timed sessions unwarmed)."""
-    from msdnet.runtime.engine.session import create_session
+    from msdnet.runtime.providers.session import create_session
 
     names = list(pipe.sessions) if files is None else files
     return {f: create_session(pipe.artifact.graphs[f], f, "cpu", threads) for f in names}

@@ -20,10 +20,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from msdnet.runtime.model import onnx_spec
+
 # measure, BUDGET_S and openvino_version are looked up on their modules, where a test patches them
-from msdnet.runtime.engine import provider_cache, provider_head, provider_measure
-from msdnet.runtime.engine.provider_cache import Cache, cache_key, cache_path, cache_shown, write_cache
-from msdnet.runtime.engine.provider_measure import (
+from msdnet.runtime.providers import provider_cache, provider_head, provider_measure
+from msdnet.runtime.providers.provider_cache import Cache, cache_key, cache_path, cache_shown, write_cache
+from msdnet.runtime.providers.provider_measure import (
     MARGIN,
     ONNXRUNTIME,
     OPENVINO,
@@ -34,7 +36,6 @@ from msdnet.runtime.engine.provider_measure import (
     failure_reason,
     paired,
 )
-from msdnet.runtime.model import onnx_spec
 
 
 @dataclass(frozen=True)
@@ -151,7 +152,7 @@ def choose_engines(pipe: Pipeline, threads: dict[str, int | None], precision: st
     won. The caller rebinds the buffers and applies the head pick (``AutoReport.dense_head``).
     ``threads``: per graph file; ``precision``: OpenVINO's, ``f32`` (``auto``) or ``bf16``
     (``auto-bf16``)."""
-    from msdnet.runtime.engine.openvino_session import OpenVinoSession
+    from msdnet.runtime.providers.openvino_session import OpenVinoSession
 
     start = time.perf_counter()
     path, manifest = cache_path(), pipe.artifact.manifest

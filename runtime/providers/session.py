@@ -1,6 +1,6 @@
 """Graph sessions: onnxruntime execution providers by short name, intra-op threads, no spinning;
 and ``openvino``: OpenVINO runs every graph it can load, onnxruntime's CPU provider the rest;
-``auto``: per graph, whichever of the two measured faster here (``runtime.engine.provider_auto``);
+``auto``: per graph, whichever of the two measured faster here (``runtime.providers.provider_auto``);
 ``openvino-bf16`` and ``auto-bf16``: the same with OpenVINO computing in bfloat16 (``BF16`` below).
 
 onnxruntime and numba share the CPU cores; a spinning intra-op pool would starve the numba
@@ -33,10 +33,11 @@ PROVIDERS: dict[str, str] = {
 }
 SHARED = "cpu-shared"  # onnxruntime's CPU provider, one process-wide thread pool for every graph
 _shared_threads: list[int] = []  # the process-wide pool's intra-op threads, once created
-OPENVINO = "openvino"  # not an onnxruntime provider: runtime.engine.openvino_session (the [openvino] extra)
-AUTO = (
-    "auto"  # per graph, the faster of onnxruntime's CPU provider and OpenVINO (runtime.engine.provider_auto)
+OPENVINO = (
+    "openvino"  # not an onnxruntime provider: runtime.providers.openvino_session (the [openvino] extra)
 )
+# per graph, the faster of onnxruntime's CPU provider and OpenVINO (runtime.providers.provider_auto)
+AUTO = "auto"
 # Graphs ``openvino`` runs with OpenVINO (f32, same threads): the heads, where it was faster in every
 # msdnet-bench latency run (docs/results/latency-*: sim-lite 2.5-2.75x, paper-width 1.5x, paper 1.0x).
 # The encoder (onnxruntime as fast or faster in 3 of 4 runs) and the step graph (50 calls a frame:
@@ -158,7 +159,7 @@ def create_session(model: bytes, name: str | Path, provider: str = "cpu", thread
     providers = resolve_providers(provider)
     name_l = provider.strip().lower()
     if (name_l == OPENVINO and Path(str(name)).name in OPENVINO_GRAPHS) or name_l == OPENVINO_BF16:
-        from msdnet.runtime.engine.openvino_session import OpenVinoSession
+        from msdnet.runtime.providers.openvino_session import OpenVinoSession
 
         if threads is not None and threads < 1:
             raise MsdnetError("threads", f"must be >= 1, got {threads}")

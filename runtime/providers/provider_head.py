@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from msdnet.runtime.engine.provider_cache import cache_key
-from msdnet.runtime.engine.provider_measure import MARGIN, Samples, paired
 from msdnet.runtime.model import onnx_spec
+from msdnet.runtime.providers.provider_cache import cache_key
+from msdnet.runtime.providers.provider_measure import MARGIN, Samples, paired
 
 DENSE, COARSE_TO_FINE = "dense", "coarse-to-fine"
 HEADS = (DENSE, COARSE_TO_FINE)
