@@ -110,3 +110,16 @@ def test_print_params_with_a_name_and_namespace_reads_back_the_same(tmp_path) ->
         NODE + ["--params-file", str(path), "--print-params"], capture_output=True, text=True
     )
     assert again.stdout == dumped.stdout and "diagnostics_period_s: 0.5" in again.stdout
+
+
+def test_the_stats_json_overwrites_no_input(tmp_path) -> None:
+    path = tmp_path / "node.yaml"
+    path.write_text("msdnet_node:\n  ros__parameters:\n    threads: 1\n", encoding="utf-8")
+    r = subprocess.run(
+        NODE + ["--params-file", str(path), "--stats-json", str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert r.returncode == 2 and "is the parameters file: it would be overwritten" in r.stderr, r.stderr
+    assert path.read_text(encoding="utf-8").startswith("msdnet_node:")

@@ -167,10 +167,31 @@ def main(params_file: Path | None, print_params: bool, **flags: Any) -> None:
     flags = {k: list(v) if isinstance(v, tuple) else v for k, v in flags.items()}
     from_file = params.file_values(params_file, flags, given) if params_file else {}
     values, origin = params.resolve(from_file, flags, given, params_file)
+    _check_stats_path(values, origin, params_file)
     if print_params:
         click.echo(params.dump(values), nl=False)
         return
     run(values, origin)
+
+
+def _check_stats_path(values: dict[str, Any], origin: dict[str, str], params_file: Path | None) -> None:
+    """The stats JSON overwrites none of the node's inputs: the parameters file, the trusted key,
+    a file of the model folder."""
+    if not values["stats_json"]:
+        return
+    stats = Path(values["stats_json"]).resolve()
+    inputs = {"the parameters file": params_file, "the trusted key": values["trusted_key"] or None}
+    for what, path in inputs.items():
+        if path is not None and Path(path).resolve() == stats:
+            raise MsdnetError(
+                origin.get("stats_json", "--stats-json"), f"{stats} is {what}: it would be overwritten"
+            )
+    if (
+        values["model"]
+        and Path(values["model"]).exists()
+        and Path(values["model"]).resolve() in stats.parents
+    ):
+        raise MsdnetError(origin.get("stats_json", "--stats-json"), f"{stats} is inside the model folder")
 
 
 def run(values: dict[str, Any], origin: dict[str, str] | None = None) -> None:
