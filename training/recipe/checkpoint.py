@@ -203,6 +203,20 @@ def versions() -> dict[str, str]:
     }
 
 
+def _swap_in(tmp: Path, folder: Path, meta: dict[str, Any], files: list[str]) -> None:
+    """Write ``meta`` into the temporary folder ``tmp``, sync it and ``files``, and put it in place of
+    ``folder``; meanwhile the previous version sits at ``<folder>.old`` (see resolve_checkpoint)."""
+    (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
+    for name in [*files, META_FILE]:
+        _fsync(tmp / name)
+    old = folder.with_name(folder.name + ".old")
+    if folder.exists():  # else a kill mid-swap left ``old`` as the only copy: keep it
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(folder, old)
+    os.replace(tmp, folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
 def save_checkpoint(
     folder: str | Path,
     model: torch.nn.Module,
@@ -264,15 +278,7 @@ def save_checkpoint(
             "files": files,
             "versions": versions(),
         }
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-        for name in [*files, META_FILE]:
-            _fsync(tmp / name)
-        old = folder.with_name(folder.name + ".old")
-        if folder.exists():  # else a kill mid-swap left ``old`` as the only copy: keep it
-            shutil.rmtree(old, ignore_errors=True)
-            os.replace(folder, old)
-        os.replace(tmp, folder)
-        shutil.rmtree(old, ignore_errors=True)
+        _swap_in(tmp, folder, meta, list(files))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return folder
@@ -309,15 +315,7 @@ def publish_checkpoint(src: str | Path, dst: str | Path) -> tuple[Path, str]:
             state[key] = _relative(state.get(key))
         if isinstance(state.get("dataset"), dict) and "root" in state["dataset"]:
             state["dataset"] = {**state["dataset"], "root": _relative(state["dataset"]["root"])}
-        (tmp / META_FILE).write_text(json.dumps(meta, indent=1))
-        for name in (MODEL_FILE, META_FILE):
-            _fsync(tmp / name)
-        old = dst.with_name(dst.name + ".old")
-        if dst.exists():
-            shutil.rmtree(old, ignore_errors=True)
-            os.replace(dst, old)
-        os.replace(tmp, dst)
-        shutil.rmtree(old, ignore_errors=True)
+        _swap_in(tmp, dst, meta, [MODEL_FILE])
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return dst, meta["files"][MODEL_FILE]
