@@ -1,6 +1,6 @@
 """Decoding thresholds by range band: which occupancy threshold each band of range decodes at.
 
-One threshold decodes too few points near the sensor and too many far away (``runtime.engine.
+One threshold decodes too few points near the sensor and too many far away (``runtime.spec.
 range_threshold``). This command chooses one per band on held-out frames of the training range
 (the selection slice, never validation): each frame runs once at the lowest candidate, with the
 model's keep rule as in its manifest; every combination of the per-band candidates is then scored
@@ -8,7 +8,7 @@ with the scene metrics (CD, MHD, F@0.2, F@0.5, JSD, means over the frames, cloud
 reference), and the pick is the combination with the lowest CD among those at least as good as the
 manifest's single threshold on all five; when none is, the manifest keeps its single threshold.
 
-``python -m msdnet.export.bands MODEL --dataset astyx --data ROOT --first 000299 --last 000351
+``msdnet-export bands MODEL --dataset astyx --data ROOT --first 000299 --last 000351
 [--write]`` prints the table and, with ``--write``, records the pick in MODEL's manifest
 (``range_thresholds`` and ``range_thresholds_calibration``), rewritten atomically. Run it before
 ``export.keep``: the keep rule is then chosen on the output the runtime gives.
@@ -192,7 +192,3 @@ def main(
     if write:
         write_bands(model, cal, f"selection slice {first}..{last}")
         click.echo(f"{model}/{MANIFEST}: range_thresholds {cal.thresholds}")
-
-
-if __name__ == "__main__":
-    main()

@@ -12,7 +12,7 @@ order (``tests/test_encoder_pairs.py``).
 
 Cost: onnxruntime 1.32 copies a ScatterND's whole data tensor on every call (not in place), so
 each tap costs a copy of the layer's output; OpenVINO does not. Measured on Astyx frames, 2
-threads (``python -m msdnet.benchmarks.latency.encoder_forms``, ``docs/latency.md``).
+threads (``msdnet-bench encoders``, ``docs/latency.md``).
 """
 
 from __future__ import annotations

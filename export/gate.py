@@ -8,7 +8,7 @@ LARGEST gate that keeps at least ``recall`` of the points the dense head decodes
 manifest's threshold. The runtime itself measures it: the artifact's Pipeline with gate 0 gives
 every half-scale voxel's gate occupancy and children's occupancy.
 
-``python -m msdnet.export.gate MODEL --checkpoint CKPT --dataset D --data ROOT`` exports the sparse
+``msdnet-export gate MODEL --checkpoint CKPT --dataset D --data ROOT`` exports the sparse
 head of the checkpoint the model came from into the model folder (same weights as its
 ``recon_head.onnx``, checked on a frame) and writes the calibrated gate into its manifest.
 """
@@ -181,7 +181,3 @@ def main(model: Path, checkpoint: Path, dataset: str, data: Path, frames: int, r
         f"{100 * cal.voxels_kept:.2f} % of the half-scale voxels on {cal.frames} frames "
         f"(keep-every-point gate {cal.keep_all_gate:.4f})"
     )
-
-
-if __name__ == "__main__":
-    main()

@@ -12,7 +12,7 @@ F@0.2, F@0.5, JSD, means over the frames, clouds cropped like the reference) and
 the candidate with the lowest CD among those at least as good as keeping every radar point on all
 five; when none is, the lowest CD (and the manifest says so).
 
-``python -m msdnet.export.keep MODEL --dataset astyx --data ROOT --first 000299 --last 000351
+``msdnet-export keep MODEL --dataset astyx --data ROOT --first 000299 --last 000351
 [--write]`` prints the table and, with ``--write``, records the pick in MODEL's manifest
 (``keep_radar_threshold`` and ``keep_radar_calibration``), rewritten atomically.
 """
@@ -181,7 +181,3 @@ def main(
     if write:
         write_keep(model, cal, f"selection slice {first}..{last}")
         click.echo(f"{model}/{MANIFEST}: keep_radar_threshold {cal.threshold:g}")
-
-
-if __name__ == "__main__":
-    main()

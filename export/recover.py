@@ -17,7 +17,7 @@ student, the frozen teacher's LiDAR encoder and S2D (the distillation target of 
 training, which a recovered checkpoint therefore cannot do; ``--distill`` and ``--head-only``
 runs do not need it).
 
-``python -m msdnet.export.recover MODEL_DIR --out CKPT [--dataset D --data ROOT --holdout H]``:
+``msdnet-export recover MODEL_DIR --out CKPT [--dataset D --data ROOT --holdout H]``:
 with a dataset the checkpoint also records the training range and selection slice the model was
 trained with (``--holdout``: the run's, 0.15 by default as in ``msdnet-train``), so that
 ``msdnet-bench steps --split select --checkpoint CKPT`` scores the same held-out frames.
@@ -258,7 +258,3 @@ def main(model_dir: Path, out: Path, dataset: str | None, data: Path | None, hol
         f"{rec.kind}: {rec.elements:,} weight elements read back from {model_dir}, re-export identical"
         f" -> {folder}; in no graph (zeros): {', '.join(rec.absent) or 'none'}"
     )
-
-
-if __name__ == "__main__":
-    main()

@@ -1,6 +1,6 @@
 """Re-export a model folder's graphs with this msdnet's exporter, everything it was calibrated with kept.
 
-``python -m msdnet.export.refresh MODEL [--out DIR]``: the weights are read back out of MODEL's
+``msdnet-export refresh MODEL [--out DIR]``: the weights are read back out of MODEL's
 graphs (``export.recover``, which checks them by an identical re-export of the old form) and
 exported again as this exporter writes them (e.g. the head's 2x up-sampling as one
 ``ConvTranspose`` instead of a 1x1x1 conv and an 8-D ``Transpose``), the encoder in the form the
@@ -141,7 +141,3 @@ def main(model: Path, out: Path | None) -> None:
         f"{r.out}: {', '.join(r.changed) or 'no graph'} re-exported; every graph within the export "
         f"tolerances of the old one (max rel {r.max_rel:.1e}), same {r.points} points on the check scan"
     )
-
-
-if __name__ == "__main__":
-    main()

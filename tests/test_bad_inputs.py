@@ -420,10 +420,15 @@ def _with_external_data(src: Path, dst: Path, graph: str) -> Path:
     return dst
 
 
+def _script(name: str) -> str:
+    """The installed console script ``name`` beside this interpreter."""
+    return str(Path(sys.executable).with_name(name))
+
+
 def test_refresh_refuses_external_data_in_one_line(tmp_path: Path) -> None:
     model = _with_external_data(BUNDLED_MODEL, tmp_path / "models" / "m", "encoder.onnx")
     r = subprocess.run(
-        [sys.executable, "-m", "msdnet.export.refresh", str(model), "--out", str(tmp_path / "r")],
+        [_script("msdnet-export"), "refresh", str(model), "--out", str(tmp_path / "r")],
         capture_output=True,
         text=True,
         env=ENV,
@@ -550,7 +555,7 @@ def test_every_command_ends_bad_arguments_and_bad_files_in_one_line(tmp_path: Pa
     (tmp_path / "garbage.ply").write_bytes(os.urandom(300))
     (tmp_path / "garbage.bag").write_bytes(b"#ROSBAG V2.0\n" + os.urandom(300))
     (tmp_path / "data").mkdir()
-    py = [sys.executable, "-m", "msdnet.export.refresh"]
+    py = [_script("msdnet-export"), "refresh"]
     t = str(tmp_path)
     cases = {
         "infer arg": ["msdnet-infer", f"{t}/garbage.ply", "--out", f"{t}/o", "--layout", "nope"],

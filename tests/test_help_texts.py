@@ -13,7 +13,7 @@ import pytest
 COMMANDS = {
     "msdnet-bench": "msdnet.benchmarks.cli:main",
     "msdnet-data": "msdnet.runtime.frontends.data.cli:main",
-    "msdnet-export": "msdnet.export.cli:main",
+    "msdnet-export": "msdnet.export.main:main",
     "msdnet-infer": "msdnet.runtime.frontends.infer.cli:main",
     "msdnet-node": "msdnet.runtime.frontends.live.cli:main",
     "msdnet-train": "msdnet.training.main:main",

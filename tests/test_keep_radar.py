@@ -202,7 +202,7 @@ def test_choose_and_write_the_threshold(student_dir, tmp_path):
 
 
 def test_keep_command_writes_the_pick(tmp_path, astyx_root):
-    """``python -m msdnet.export.keep`` on two Astyx frames with a tiny Astyx model."""
+    """``msdnet-export keep`` on two Astyx frames with a tiny Astyx model."""
     from click.testing import CliRunner
 
     from msdnet.export.keep import main

@@ -118,7 +118,7 @@ def test_bad_manifest_bands_fail_in_one_line(student_dir, tmp_path):
 
 
 def test_bands_command_writes_the_pick(tmp_path, astyx_root):
-    """``python -m msdnet.export.bands`` on two Astyx frames with a tiny Astyx model."""
+    """``msdnet-export bands`` on two Astyx frames with a tiny Astyx model."""
     from click.testing import CliRunner
 
     from msdnet.export.bands import main

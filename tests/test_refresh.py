@@ -1,4 +1,4 @@
-"""``python -m msdnet.export.refresh``: a model exported before the head's up-sampling became one
+"""``msdnet-export refresh``: a model exported before the head's up-sampling became one
 ``ConvTranspose`` is re-exported with the same weights and calibration, and runs the same."""
 
 from __future__ import annotations

@@ -21,7 +21,6 @@ from msdnet.runtime.spec.grid import GRID_PRESETS, GridConfig
 from msdnet.training.models.assembly import bev_shape
 from msdnet.training.nn.head import ReconHead
 from msdnet.training.nn.head_gated import FixedGroupNorm, GatedReconHead
-from msdnet.training.nn.head_gated8 import Gated8ReconHead
 from msdnet.training.nn.heads import build_head
 
 ODD = GridConfig((0.0, 0.0, 0.0, 2.2, 1.8, 1.5), (0.2, 0.2, 0.3))  # 11 x 9 x 5: odd on every axis
@@ -30,18 +29,14 @@ ODD = GridConfig((0.0, 0.0, 0.0, 2.2, 1.8, 1.5), (0.2, 0.2, 0.3))  # 11 x 9 x 5:
 def _gate_occupancy(head: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
     """Every half-scale voxel's gate occupancy, from the dense multi-scale outputs: its own
     occupancy (ReconHead), or the smaller of its own and its 1/4 parent's (SparseReconHead,
-    GatedReconHead), and for the gated8 head its 1/8 grandparent's neighbourhood maximum."""
+    GatedReconHead)."""
     (l4, _), (l2, _), _ = head.multi_scale(x)
     own = torch.sigmoid(l2)[0, 0]  # (D2, H2, W2)
     if type(head) is ReconHead:
         return own.reshape(-1)
     d2, h2, w2 = own.shape
     up = _up(torch.sigmoid(l4)[0, 0], 2)
-    gate = torch.minimum(own, up[:d2, :h2, :w2])
-    if isinstance(head, Gated8ReconHead):
-        up8 = _up(head.gate_volumes(x)[0], 4)
-        gate = torch.minimum(gate, up8[:d2, :h2, :w2])
-    return gate.reshape(-1)
+    return torch.minimum(own, up[:d2, :h2, :w2]).reshape(-1)
 
 
 def _up(v: torch.Tensor, k: int) -> torch.Tensor:
@@ -50,12 +45,12 @@ def _up(v: torch.Tensor, k: int) -> torch.Tensor:
 
 
 def _fold_random(head: torch.nn.Module) -> None:
-    """Statistics in the fixed norms as calibration would set them, not 0 / 1."""
-    for norm in head.fixed_norms() if isinstance(head, Gated8ReconHead) else [head.fixed_norm()]:
-        norm.fold(torch.rand(norm.num_groups) - 0.5, torch.rand(norm.num_groups) * 2 + 0.2)
+    """Statistics in the fixed norm as calibration would set them, not 0 / 1."""
+    norm = head.fixed_norm()
+    norm.fold(torch.rand(norm.num_groups) - 0.5, torch.rand(norm.num_groups) * 2 + 0.2)
 
 
-@pytest.mark.parametrize("kind", ["dense", "sparse", "gated", "gated8"])
+@pytest.mark.parametrize("kind", ["dense", "sparse", "gated"])
 def test_sparse_children_equal_packed(kind: str) -> None:
     torch.manual_seed(0)
     cfg = dataclasses.replace(tiny_config(), head_kind=kind)
@@ -166,10 +161,10 @@ def test_sparse_decoder_equals_packed_decoder(grid: GridConfig) -> None:
         decode_sparse(rows_occ[:2], rows_off[:1], every[:2], grid, 0.5)
 
 
-@pytest.fixture(scope="module", params=["dense", "sparse", "gated", "gated8"])
+@pytest.fixture(scope="module", params=["dense", "sparse", "gated"])
 def sparse_pipe(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Pipeline:
     """The coarse-to-fine graph of each head kind (ReconHead.sparse, SparseReconHead.sparse,
-    GatedReconHead.sparse, Gated8ReconHead.sparse)."""
+    GatedReconHead.sparse)."""
     folder = make_artifact(tmp_path_factory.mktemp("sparse"), "student", head_kind=request.param)
     return Pipeline.from_dir(folder, threads=1)
 
@@ -206,7 +201,7 @@ def test_keep_all_gate_decodes_the_dense_points(sparse_pipe: Pipeline) -> None:
     assert pipe.sparse_head_outputs() == {}  # the last call ran the dense head
     assert len(dense.points) > 0 and dense.stats["head_voxels"] == every.stats["head_voxels"]
     for res in (every, kept):
-        if pipe.artifact.manifest["config"]["head_kind"] in ("gated", "gated8"):  # gather + matmul:
+        if pipe.artifact.manifest["config"]["head_kind"] == "gated":  # gather + matmul:
             assert res.points.shape == dense.points.shape  # the same sums in another order
             np.testing.assert_allclose(res.points, dense.points, rtol=0, atol=1e-5)
             np.testing.assert_allclose(res.confidence, dense.confidence, rtol=0, atol=1e-6)

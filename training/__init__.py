@@ -9,7 +9,8 @@ Layers, each importing only those before it (``tests/test_import_graph.py``):
 - ``models``: the teacher, the student and R2LDM assembled from them, their losses and latents;
 - ``recipe``: the training loop, checkpoints, data-parallel runs, threshold calibration and the
   gated head;
-- ``cli``: ``msdnet-train`` (also ``torchrun -m msdnet.training.cli``).
+- ``cli``: the training command (also ``torchrun -m msdnet.training.cli``); ``main``: the
+  ``msdnet-train`` group of every training job, which lists them without importing torch.
 """
 
 import os as _os

@@ -77,8 +77,6 @@ class ModelConfig:
     # nn/head_sparse.py; not the default, see docs/training.md) or "gated" (dense with a
     # fixed-statistics norm at 1/2, whose coarse-to-fine graph computes 1/2 only under the 1/4 voxels
     # above the gate; nn/head_gated.py, made from a dense student by training/recipe/gated_head.py)
-    # or "gated8" (every norm below 1/8 fixed, the 1/4 level computed only near the 1/8 voxels above
-    # the gate; nn/head_gated8.py, retrained from a student by training/recipe/retrain_gated8.py)
     head_kind: str = "dense"
     # sparse head only: widths at 1/4 and 1/2 (1/8 and the full scale keep head_channels[0], [2]);
     # wider than the dense head's, since below 1/4 a voxel sees only its parent (head_sparse.py)

@@ -20,7 +20,7 @@ from msdnet.runtime.io.datasets import DATASET_NAMES
 @click.option("--model", type=click.Path(path_type=Path), help="Exported MSDNet folder.")
 @click.option(
     "--head",
-    type=click.Choice(["dense", "gated", "gated8", "sparse"]),
+    type=click.Choice(["dense", "gated", "sparse"]),
     help="Recon head of random models [dense].",
 )
 @click.option("--loop-steps", type=click.IntRange(min=1), help="DDIM steps T_m of random models [preset].")

@@ -16,7 +16,7 @@ class LatencyConfig:
     out: Path  # folder for results.json, results.md and the plots
     preset: str | None = None  # model preset for random models (default lite; --model: its own)
     model: Path | None = None  # exported MSDNet folder; None: random MSDNet + R2LDM of the preset
-    head: str | None = None  # random models: "dense", "gated", "gated8" or "sparse" recon head [dense]
+    head: str | None = None  # random models: "dense", "gated" or "sparse" recon head [dense]
     loop_steps: int | None = None  # random models: the DDIM steps T_m they run [the preset's]
     up_sampling: str | None = None  # random models: head export form (training.nn.head.Up2x) [the exporter's]
     r2ldm: Path | None = None  # exported R2LDM folder; None: random R2LDM on the same config

@@ -6,8 +6,7 @@ as a 1x1x1 conv and an 8-D ``Transpose`` (``Up2x`` "depth_to_space", the older e
 form), T_m = 50 DDIM steps, ``--provider cpu``. Against a dense or gated head, the weights
 are the new model's: the same preset, seed and initialisation order (the gated head has the dense
 head's layers; the step count changes no weight), so the two differ only in what the engine runs
-(the ``sparse`` head kind has layers of its own, and ``gated8`` a 1/8 gate, so there some weights
-differ). Its threshold
+(the ``sparse`` head kind has layers of its own, so there some weights differ). Its threshold
 leaves the same number of points as the new model's (``calibrate_threshold`` to the run's target).
 
 Both pipelines run the run's input in turn, the order swapped every repeat, so both see the same

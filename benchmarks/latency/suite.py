@@ -237,7 +237,7 @@ def run_latency(cfg: LatencyConfig, log: Callable[[str], None] = print) -> dict[
     useful = efficiency(flops, stages, main["step_graph"]["sgemm_gflops_peak"])
     res: dict[str, Any] = {
         "preset": pair.cfg.preset,
-        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated", "gated8" or "sparse"
+        "head_kind": pair.cfg.head_kind,  # recon head: "dense", "gated" or "sparse"
         "up_sampling": cfg.up_sampling,  # random models' head export form (None: given models / default)
         "provider": cfg.provider,
         "threads": cfg.threads,

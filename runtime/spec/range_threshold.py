@@ -11,7 +11,7 @@ decoded point:
 The decoder compares each voxel's occupancy with its point's band threshold as it decodes
 (``decode._passes``): the same points as decoding at each band's threshold and keeping that band's,
 since a voxel's occupancy and offset do not depend on the threshold (r compared as x^2 + y^2
-against the squared edges, in float64). ``python -m msdnet.export.bands`` chooses them on the
+against the squared edges, in float64). ``msdnet-export bands`` chooses them on the
 selection slice.
 """
 

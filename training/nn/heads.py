@@ -8,21 +8,17 @@ from torch import nn
 from msdnet.training.config import ModelConfig
 from msdnet.training.nn.head import ReconHead
 from msdnet.training.nn.head_gated import GatedReconHead
-from msdnet.training.nn.head_gated8 import Gated8ReconHead
 from msdnet.training.nn.head_sparse import SparseReconHead
 
-HEAD_KINDS = ("dense", "gated", "gated8", "sparse")  # nn.head, nn.head_gated(8), nn.head_sparse
+HEAD_KINDS = ("dense", "gated", "sparse")  # nn.head, nn.head_gated, nn.head_sparse
 
 
 def build_head(cfg: ModelConfig) -> nn.Module:
     """The head ``cfg.head_kind`` names: "dense" (:class:`ReconHead`), "gated" (the dense head with
-    a fixed-statistics norm at 1/2, :class:`GatedReconHead`), "gated8" (every norm below 1/8 fixed
-    and a 1/8 gate, :class:`Gated8ReconHead`) or "sparse" (per-voxel layers below 1/4,
-    :class:`SparseReconHead`)."""
+    a fixed-statistics norm at 1/2, :class:`GatedReconHead`) or "sparse" (per-voxel layers below
+    1/4, :class:`SparseReconHead`)."""
     if cfg.head_kind == "gated":
         return GatedReconHead(cfg)
-    if cfg.head_kind == "gated8":
-        return Gated8ReconHead(cfg)
     if cfg.head_kind == "sparse":
         return SparseReconHead(cfg)
     if cfg.head_kind == "dense":

@@ -6,5 +6,5 @@
 - ``calibrate``: the occupancy threshold chosen on held-out training-range frames
   (``msdnet-export --calibrate``);
 - ``gated_head``: a dense student turned into one with the gated head
-  (``python -m msdnet.training.recipe.gated_head``).
+  (``msdnet-train gated-head``).
 """

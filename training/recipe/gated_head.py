@@ -16,7 +16,7 @@ range (the selection slice and the validation split are never read):
 
 Each frame's noise eps comes from its own seeded generator, so the command is reproducible.
 
-    python -m msdnet.training.recipe.gated_head CKPT --dataset astyx --data ROOT --out NEW_CKPT
+    msdnet-train gated-head CKPT --dataset astyx --data ROOT --out NEW_CKPT
 """
 
 from __future__ import annotations
@@ -191,7 +191,3 @@ def main(
         f"{fit['kept_at_half']:.1%} of the 1/4 voxels above 0.5"
     )
     click.echo(f"{out}: gated head calibrated on {len(features)} frames of {dataset}")
-
-
-if __name__ == "__main__":
-    main()
