@@ -31,7 +31,7 @@ NARRATION = re.compile(
     r"|otherwise idle|at this load",
     re.IGNORECASE,
 )
-NARRATION_PENDING = {"live.md": "its owner removes the load narration of the live node's figures"}
+NARRATION_PENDING: dict[str, str] = {}  # page name -> why its narration is still there
 
 
 def _narration_cases() -> list:

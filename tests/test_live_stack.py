@@ -90,13 +90,13 @@ def _publish(env: dict[str, str], domain: int, files: list[Path], count: int, *e
 
 
 class Listener:
-    """Reliable readers of the debug topics and /diagnostics, collecting in a thread."""
+    """Reliable readers of the node ``fqn``'s debug topics and /diagnostics, collecting in a thread."""
 
-    def __init__(self, domain: int, debug_struct: type) -> None:
+    def __init__(self, domain: int, debug_struct: type, fqn: str = "/msdnet_node") -> None:
         self.dds = Endpoints(domain)
         names = ("processing_time_ms", "cyclic_time_ms", "pipeline_latency_ms")
         self.readers = {
-            n: self.dds.reader(dds_topic(f"/msdnet_node/debug/{n}"), True, 1000, debug_struct) for n in names
+            n: self.dds.reader(dds_topic(f"{fqn}/debug/{n}"), True, 1000, debug_struct) for n in names
         }
         self.readers["diagnostics"] = self.dds.reader(dds_topic("/diagnostics"), True, 1000, DiagnosticArray)
         self.got: dict[str, list] = {n: [] for n in self.readers}
@@ -383,7 +383,8 @@ def test_stack_node_params_file_keep_radar_frame_diagnostics_debug_foxglove(env,
         f"    target_frame: base_link\n    extrinsic: '{EXTRINSIC}'\n"
         "    debug_msgs_type: tier4_debug_msgs\n"
         "    max_allowed_processing_time_ms: 500.0\n    max_acceptable_consecutive_delay_ms: 1200.0\n"
-        "    testing_delay: '4:8:800'\n    foxglove: true\n    foxglove_port: 0\n    diagnostics_period_s: 0.1\n"
+        "    testing_delay: '4:8:800'\n    foxglove: true\n    foxglove_port: 0\n"
+        "    diagnostics_period_s: 0.1\n    node_name: stack_node\n"  # its own status among any others
         f"    stats_json: {stats_path}\n",
         encoding="utf-8",
     )
@@ -394,7 +395,7 @@ def test_stack_node_params_file_keep_radar_frame_diagnostics_debug_foxglove(env,
     port = int(ready.rsplit(":", 1)[1])
     assert "ws://127.0.0.1:" in ready
     fox = FoxgloveClient(port, ("/radar/points", "/radar/points/dense"))
-    listener = Listener(domain, Tier4Float64Stamped)
+    listener = Listener(domain, Tier4Float64Stamped, "/stack_node")
     collector = DenseCollector("/radar/points", domain)
     try:
         collector.wait_matched()
@@ -444,13 +445,16 @@ def test_stack_node_params_file_keep_radar_frame_diagnostics_debug_foxglove(env,
     assert f"with NaN/Inf {pts['dropped_nonfinite']}" in out.splitlines()[-1]
     assert "points with NaN/Inf dropped" in err
 
-    # diagnostics OK -> WARN -> ERROR -> OK; the per-scan statuses in order
-    levels = [s.status[0].level for s in listener.got["diagnostics"]]
+    # diagnostics OK -> WARN -> ERROR -> OK, at the period (this node's status: others may share the bus)
+    ours = [
+        s.status[0] for s in listener.got["diagnostics"] if s.status[0].name == "stack_node: processing_time"
+    ]
+    levels = [s.level for s in ours]
     changes = [lv for j, lv in enumerate(levels) if j == 0 or lv != levels[j - 1]]
-    assert changes == [0, 1, 2, 0], levels
+    assert changes == [0, 1, 2, 0], [(s.level, s.message) for s in ours]
     assert stats["diagnostics"]["WARN"] >= 1 and stats["diagnostics"]["ERROR"] >= 1
-    status = listener.got["diagnostics"][-1].status[0]
-    assert status.name == "msdnet_node: processing_time" and status.level == 0
+    status = ours[-1]
+    assert status.hardware_id == "stack_node /radar/points" and status.level == 0
     assert {kv.key for kv in status.values} >= {"processing_time_ms", "max_allowed_processing_time_ms"}
 
     # debug topics: the node's own percentiles within 5 %
