@@ -382,7 +382,7 @@ def test_stack_node_params_file_keep_radar_frame_diagnostics_debug_foxglove(env,
         f"    domain_id: {domain}\n    threads: 1\n    provider: cpu\n    keep_radar: true\n"
         f"    target_frame: base_link\n    extrinsic: '{EXTRINSIC}'\n"
         "    debug_msgs_type: tier4_debug_msgs\n"
-        "    max_allowed_processing_time_ms: 500.0\n    max_acceptable_consecutive_delay_ms: 1200.0\n"
+        "    max_allowed_processing_time_ms: 600.0\n    max_acceptable_consecutive_delay_ms: 1200.0\n"
         "    testing_delay: '4:8:800'\n    foxglove: true\n    foxglove_port: 0\n"
         "    diagnostics_period_s: 0.1\n    node_name: stack_node\n"  # its own status among any others
         f"    stats_json: {stats_path}\n",

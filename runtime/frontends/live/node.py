@@ -30,6 +30,7 @@ from msdnet.runtime.frontends.live.stats import (  # noqa: F401 - the node's sta
 )
 
 POLL_S = 0.05  # how often both threads look at the stop flag (SIGTERM -> exit well within 1 s)
+WATCH_S = 0.5  # how often the receive thread looks for writers it cannot match (off the hot path)
 DENSE_SUFFIX = "/dense"  # output topic = input topic + this
 
 
@@ -88,9 +89,11 @@ def _receive(
     from cyclonedds.util import duration
 
     index = 0
+    watched = 0.0  # monotonic time of the last look at the writers
     while not stop.is_set():
         waitset.wait(duration(seconds=POLL_S))
-        if watch is not None:
+        if watch is not None and time.monotonic() - watched >= WATCH_S:
+            watched = time.monotonic()
             try:
                 watch.poll()
             except Exception:  # noqa: BLE001 - naming unmatched writers must never stop the receiving
